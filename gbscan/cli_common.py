@@ -1,0 +1,87 @@
+"""Shared command-line plumbing for ``gbscan`` and ``gbcal``.
+
+Each pipeline stage is a module ``<package>/commands/<stage>.py`` that defines
+
+* ``HELP`` -- one line for the command list,
+* ``add_arguments(parser)`` -- its options,
+* ``run(args) -> int`` -- the work; raises :class:`gbscan.errors.GBError` for bad input.
+
+The dispatcher imports only the chosen stage's module (heavy libraries such as open3d load only
+when a command needs them), turns GBError, a missing file or a bad option into one line on
+stderr and a non-zero exit status (2 for usage, 1 for a failed run), and never shows a traceback
+for bad input.  ``GB_DEBUG=1`` shows tracebacks for unexpected errors.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from .errors import GBError
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, not argparse's usage dump
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+def size_arg(text: str) -> tuple[int, int]:
+    """'WxH' -> (W, H) for argparse."""
+    try:
+        w, h = text.lower().split("x")
+        w, h = int(w), int(h)
+        if w <= 0 or h <= 0:
+            raise ValueError
+        return w, h
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 1024x768, got '{text}'") from None
+
+
+def run_cli(prog: str, description: str, package: str, stages: list[str], argv=None) -> int:
+    parser = _Parser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    from gbscan import __version__
+
+    parser.add_argument("--version", action="version", version=f"{prog} {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    modules = {}
+    argv = sys.argv[1:] if argv is None else list(argv)
+    wanted = next((a for a in argv if not a.startswith("-")), None)
+    for name in stages:
+        # Import every stage for the command list only when help is asked for; otherwise just the chosen one.
+        if wanted is not None and wanted != name and wanted in stages:
+            sub.add_parser(name, help="")
+            continue
+        mod = importlib.import_module(f"{package}.commands.{name.replace('-', '_')}")
+        modules[name] = mod
+        p = sub.add_parser(name, help=mod.HELP, description=(mod.__doc__ or mod.HELP),
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        mod.add_arguments(p)
+    args = parser.parse_args(argv)
+    if not args.command:
+        parser.print_help()
+        return 2
+    try:
+        return int(modules[args.command].run(args) or 0)
+    except GBError as e:
+        print(f"{prog} {args.command}: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{prog} {args.command}: interrupted; outputs not finished were not written", file=sys.stderr)
+        return 130
+    except (OSError, MemoryError) as e:
+        print(f"{prog} {args.command}: error: {e}", file=sys.stderr)
+        return 1
+    except Exception as e:  # an unexpected failure is a bug: say so in one line unless debugging
+        if os.environ.get("GB_DEBUG"):
+            raise
+        print(f"{prog} {args.command}: internal error: {type(e).__name__}: {e} "
+              f"(please report it; rerun with GB_DEBUG=1 for a traceback)", file=sys.stderr)
+        return 3
+
+
+def available_stages(package: str, stages: list[str]) -> list[str]:
+    """The stages whose command module exists (lets the CLI grow one stage at a time)."""
+    import importlib.util
+
+    return [s for s in stages if importlib.util.find_spec(f"{package}.commands.{s.replace('-', '_')}") is not None]

@@ -1,0 +1,259 @@
+"""Files at the edge: images, YAML, NPZ, capture sessions.  Every write is atomic.
+
+A write goes to a temporary file in the destination folder, is flushed to disk, and replaces the
+destination with ``os.replace``; a failure at any point removes the temporary file, so a failed
+run never leaves a half-written output behind.
+
+Images in memory are RGB ``uint8`` arrays ``(H, W, 3)`` (OpenCV's BGR appears only here).
+
+Capture session (a fixed contract, written by the simulator and the guided capture script)::
+
+    SESSION/session.yaml   board: {cols, rows, square_mm}   # inner corners along x and y
+                           camera: {width, height}
+                           projector: {width, height}
+                           frames: [name, ...]             # projector frames, display order
+    SESSION/pose_000/<name>.png, SESSION/pose_001/<name>.png, ...   one camera image per frame
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .errors import GBError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".ppm", ".pgm")
+
+
+# -- atomic writes -----------------------------------------------------------------------------
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str | None = None):
+    """Yield a temporary path beside ``path``; on success it replaces ``path`` atomically.
+
+    ``suffix`` defaults to the destination's own (writers such as OpenCV and open3d pick the
+    format from it).  Raises GBError if the destination folder is missing or not writable.
+    """
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise GBError(f"cannot write {path}: folder {folder} does not exist (create it first)")
+    if not os.access(folder, os.W_OK):
+        raise GBError(f"cannot write {path}: folder {folder} is not writable")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix,
+                               dir=folder)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        if not Path(tmp).exists() or Path(tmp).stat().st_size == 0:
+            raise GBError(f"writing {path} produced no data")
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+
+
+def write_bytes_atomic(path, data: bytes) -> Path:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
+def write_text_atomic(path, text: str) -> Path:
+    return write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def save_yaml(path, data: dict, header: str = "") -> Path:
+    """Write ``data`` as block-style YAML (keys in insertion order), atomically."""
+    text = yaml.safe_dump(_plain(data), sort_keys=False, default_flow_style=None, width=100)
+    return write_text_atomic(path, header + text)
+
+
+def load_yaml(path, what: str = "YAML file") -> dict:
+    """Read a YAML mapping; GBError naming the file if it is missing, unreadable or not a mapping."""
+    path = Path(path)
+    if not path.is_file():
+        raise GBError(f"{what} {path} does not exist")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise GBError(f"{what} {path} is not valid YAML ({_first_line(e)}); fix or regenerate it") from None
+    if not isinstance(data, dict):
+        raise GBError(f"{what} {path} must hold a YAML mapping, found {type(data).__name__}")
+    return data
+
+
+def save_npz(path, **arrays) -> Path:
+    """Write a compressed .npz atomically (the name must end in .npz)."""
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez_compressed(tmp, **arrays)
+    return Path(path)
+
+
+def save_npy(path, array: np.ndarray) -> Path:
+    with atomic_path(path, suffix=".npy") as tmp:
+        np.save(tmp, array)
+    return Path(path)
+
+
+def _plain(x):
+    """numpy scalars/arrays -> plain Python for YAML."""
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _plain(x.tolist())
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, Path):
+        return str(x)
+    return x
+
+
+def _first_line(e: Exception) -> str:
+    return str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+
+
+# -- images ------------------------------------------------------------------------------------
+def read_image_rgb(path, *, size: tuple[int, int] | None = None, what: str = "image") -> np.ndarray:
+    """Read a colour image as RGB uint8 (H, W, 3).
+
+    16-bit images are scaled to 8 bits.  Raises GBError naming the file if it is missing,
+    unreadable, grey (the decoder needs colour), or not ``size = (width, height)`` when given.
+    """
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise GBError(f"{what} {path} does not exist")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise GBError(f"{what} {path} could not be read as an image (corrupt or unsupported format)")
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise GBError(f"{what} {path} has pixel type {img.dtype}; expected 8- or 16-bit")
+    if img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 1):
+        raise GBError(f"{what} {path} is a grey image; the green-blue decoder needs a colour (RGB) image")
+    if img.shape[2] == 4:
+        img = img[:, :, :3]
+    rgb = np.ascontiguousarray(img[:, :, ::-1])
+    if size is not None and (rgb.shape[1], rgb.shape[0]) != tuple(size):
+        raise GBError(f"{what} {path} is {rgb.shape[1]}x{rgb.shape[0]} but {size[0]}x{size[1]} was expected "
+                      "(the calibration's camera size); use images from the calibrated camera")
+    return rgb
+
+
+def read_image_gray(path, *, what: str = "image") -> np.ndarray:
+    """Read any image as grey uint8 (H, W); GBError naming the file if it cannot be read."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise GBError(f"{what} {path} does not exist")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise GBError(f"{what} {path} could not be read as an image (corrupt or unsupported format)")
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img[:, :, :3], cv2.COLOR_BGR2GRAY)
+    return img
+
+
+def write_png(path, image: np.ndarray) -> Path:
+    """Write an RGB (H, W, 3) or grey (H, W) uint8 image as PNG, atomically."""
+    import cv2
+
+    image = np.asarray(image)
+    if image.dtype != np.uint8:
+        raise GBError(f"write_png({path}): expected uint8 pixels, got {image.dtype}")
+    out = image[:, :, ::-1] if image.ndim == 3 else image
+    with atomic_path(path, suffix=".png") as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(out)):
+            raise GBError(f"could not encode {path} as PNG")
+    return Path(path)
+
+
+# -- capture sessions --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Session:
+    """A capture session folder (see the module docstring for the layout)."""
+
+    root: Path
+    board_cols: int
+    board_rows: int
+    square_mm: float
+    camera_size: tuple[int, int]
+    projector_size: tuple[int, int]
+    frames: tuple[str, ...]
+    poses: tuple[Path, ...]
+    extra: dict
+
+    def frame_path(self, pose: int, name: str) -> Path:
+        return self.poses[pose] / f"{name}.png"
+
+
+def write_session_yaml(root, *, board: tuple[int, int, float], camera_size, projector_size, frames,
+                       extra: dict | None = None) -> Path:
+    data = {
+        "schema": "gbcal.session",
+        "version": 1,
+        "board": {"cols": int(board[0]), "rows": int(board[1]), "square_mm": float(board[2])},
+        "camera": {"width": int(camera_size[0]), "height": int(camera_size[1])},
+        "projector": {"width": int(projector_size[0]), "height": int(projector_size[1])},
+        "frames": [str(f) for f in frames],
+    }
+    data.update(extra or {})
+    return save_yaml(Path(root) / "session.yaml", data)
+
+
+def load_session(root) -> Session:
+    """Read and check a capture session folder; GBError naming what is missing or malformed."""
+    root = Path(root)
+    if not root.is_dir():
+        raise GBError(f"session folder {root} does not exist")
+    f = root / "session.yaml"
+    if not f.is_file():
+        raise GBError(f"{root} is not a capture session: {f.name} is missing "
+                      "(make one with scripts/guided_calibration.py or gbcal simulate-session)")
+    d = load_yaml(f, "session file")
+
+    def need(mapping, key, where):
+        if not isinstance(mapping, dict) or key not in mapping:
+            raise GBError(f"session file {f}: field '{where}{key}' is missing")
+        return mapping[key]
+
+    def pos_int(v, name):
+        if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+            raise GBError(f"session file {f}: '{name}' must be a positive integer, got {v!r}")
+        return v
+
+    board = need(d, "board", "")
+    cols = pos_int(need(board, "cols", "board."), "board.cols")
+    rows = pos_int(need(board, "rows", "board."), "board.rows")
+    sq = need(board, "square_mm", "board.")
+    if isinstance(sq, bool) or not isinstance(sq, (int, float)) or not sq > 0:
+        raise GBError(f"session file {f}: 'board.square_mm' must be a positive number, got {sq!r}")
+    cam = need(d, "camera", "")
+    proj = need(d, "projector", "")
+    cam_size = (pos_int(need(cam, "width", "camera."), "camera.width"),
+                pos_int(need(cam, "height", "camera."), "camera.height"))
+    proj_size = (pos_int(need(proj, "width", "projector."), "projector.width"),
+                 pos_int(need(proj, "height", "projector."), "projector.height"))
+    frames = need(d, "frames", "")
+    if not isinstance(frames, list) or not frames or not all(isinstance(x, str) and x for x in frames):
+        raise GBError(f"session file {f}: 'frames' must be a non-empty list of frame names")
+    poses = tuple(sorted(p for p in root.glob("pose_[0-9][0-9][0-9]*") if p.is_dir()))
+    if not poses:
+        raise GBError(f"session {root} has no pose_000/ ... folders with captures")
+    known = {"schema", "version", "board", "camera", "projector", "frames"}
+    extra = {k: v for k, v in d.items() if k not in known}
+    return Session(root, cols, rows, float(sq), cam_size, proj_size, tuple(frames), poses, extra)
