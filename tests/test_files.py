@@ -1,0 +1,111 @@
+"""io and the calibration file: atomic writes, strict loading, clear errors."""
+import os
+
+import numpy as np
+import pytest
+import yaml
+
+from gbscan.calibfile import calibration_from_rig, load_calibration, save_calibration
+from gbscan.errors import GBError
+from gbscan.io import atomic_path, load_session, read_image_rgb, save_yaml, write_png, write_session_yaml
+from gbscan.pattern import PatternSpec
+from gbscan.rig import paper_rig
+
+
+def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "out.yaml"
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []
+    target.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_text("new")
+            raise RuntimeError("boom")
+    assert target.read_text() == "old"
+
+
+def test_atomic_write_names_missing_folder(tmp_path):
+    with pytest.raises(GBError, match="does not exist"):
+        save_yaml(tmp_path / "nope" / "x.yaml", {"a": 1})
+
+
+def test_calibration_round_trip(tmp_path):
+    calib = calibration_from_rig(paper_rig(), PatternSpec())
+    path = save_calibration(tmp_path / "calib.yaml", calib)
+    back = load_calibration(path)
+    np.testing.assert_array_equal(back.plane_index, calib.plane_index)
+    np.testing.assert_allclose(back.plane_normal, calib.plane_normal, atol=1e-15)
+    np.testing.assert_allclose(back.plane_d, calib.plane_d, atol=1e-12)
+    np.testing.assert_allclose(back.camera.K, calib.camera.K)
+    assert back.pattern == PatternSpec()
+    raw = yaml.safe_load(path.read_text())
+    assert raw["schema"] == "gbcal.calibration" and raw["version"] == 1
+    assert set(raw["planes"][0]) == {"index", "column", "normal", "d"}
+    assert raw["created"]["by"] and raw["units"]["length"] == "mm"
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d.update(version=99), "version"),
+    (lambda d: d.update(schema="other"), "schema"),
+    (lambda d: d["camera"].pop("distortion"), "camera.distortion"),
+    (lambda d: d["camera"].update(matrix=[[1, 0], [0, 1]]), "camera.matrix"),
+    (lambda d: d["planes"][3].pop("d"), r"planes\[3\].d"),
+    (lambda d: d["planes"][2].update(normal=[1, 1, 1]), "unit vector"),
+    (lambda d: d.update(planes=[]), "no light planes"),
+    (lambda d: d["camera"].update(width="640"), "camera.width"),
+])
+def test_calibration_load_is_strict(tmp_path, edit, message):
+    path = save_calibration(tmp_path / "c.yaml", calibration_from_rig(paper_rig(), PatternSpec()))
+    d = yaml.safe_load(path.read_text())
+    edit(d)
+    path.write_text(yaml.safe_dump(d))
+    with pytest.raises(GBError, match=message) as e:
+        load_calibration(path)
+    assert str(path) in str(e.value)
+
+
+def test_corrupt_yaml_is_named(tmp_path):
+    p = tmp_path / "bad.yaml"
+    p.write_text("camera: [unclosed\n")
+    with pytest.raises(GBError, match="not valid YAML") as e:
+        load_calibration(p)
+    assert "bad.yaml" in str(e.value)
+
+
+def test_images(tmp_path):
+    rgb = np.zeros((4, 5, 3), np.uint8)
+    rgb[..., 1] = 200
+    p = write_png(tmp_path / "a.png", rgb)
+    np.testing.assert_array_equal(read_image_rgb(p), rgb)
+    with pytest.raises(GBError, match="5x4 but 640x480"):
+        read_image_rgb(p, size=(640, 480))
+    write_png(tmp_path / "g.png", rgb[..., 1])
+    with pytest.raises(GBError, match="grey"):
+        read_image_rgb(tmp_path / "g.png")
+    (tmp_path / "c.png").write_bytes(b"not a png")
+    with pytest.raises(GBError, match="could not be read"):
+        read_image_rgb(tmp_path / "c.png")
+    with pytest.raises(GBError, match="does not exist"):
+        read_image_rgb(tmp_path / "missing.png")
+
+
+def test_session_format(tmp_path):
+    write_session_yaml(tmp_path, board=(9, 7, 30.0), camera_size=(640, 480), projector_size=(1024, 768),
+                       frames=["white", "stripes"])
+    with pytest.raises(GBError, match="no pose_000"):
+        load_session(tmp_path)
+    (tmp_path / "pose_000").mkdir()
+    s = load_session(tmp_path)
+    assert (s.board_cols, s.board_rows, s.square_mm) == (9, 7, 30.0)
+    assert s.frames == ("white", "stripes") and s.frame_path(0, "white").name == "white.png"
+    d = yaml.safe_load((tmp_path / "session.yaml").read_text())
+    d["board"].pop("square_mm")
+    (tmp_path / "session.yaml").write_text(yaml.safe_dump(d))
+    with pytest.raises(GBError, match="board.square_mm"):
+        load_session(tmp_path)
+    os.remove(tmp_path / "session.yaml")
+    with pytest.raises(GBError, match="session.yaml is missing"):
+        load_session(tmp_path)
