@@ -1,0 +1,261 @@
+"""Checkerboard model and detection: conventions, accuracy on rendered boards, rejections with reasons."""
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from gbcal.board import Board, Detection, canonical_order, detect, detect_with_reason, draw_detection, parse_board
+from gbscan.camera import Camera
+from gbscan.errors import GBError
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+BOUGUET = SHARED / "data" / "bouguet_calib_example"
+K = np.array([[800.0, 0.0, 319.5], [0.0, 800.0, 239.5], [0.0, 0.0, 1.0]])
+
+
+def rot(rx=0.0, ry=0.0, rz=0.0):
+    """Rotation from Euler angles in degrees (x, then y, then z; extrinsic)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("xyz", [rx, ry, rz], degrees=True).as_matrix()
+
+
+def centred_pose(board, R, distance_mm=600.0, shift=(0.0, 0.0)):
+    """Pose putting the board's centre on the optical axis at ``distance_mm`` (plus a shift in mm)."""
+    centre = np.array([(board.cols - 1) * board.square_mm / 2, (board.rows - 1) * board.square_mm / 2, 0.0])
+    return R, np.array([shift[0], shift[1], distance_mm]) - R @ centre
+
+
+def render_board(board, R, t, *, camera=None, ss=4, blur_px=0.7, white=210.0, black=35.0, background=90.0,
+                 noise=0.0, seed=0):
+    """Area-sampled render of a board (convention of docs/design.md) -> (grey uint8, true corners (N, 2)).
+
+    ``ss`` x ``ss`` samples per pixel through the exact camera model, Gaussian blur, optional noise.
+    The printed grid is (cols+1) x (rows+1) squares with a one-square white margin.
+    """
+    cam = camera or Camera(640, 480, K)
+    h, w = cam.height, cam.width
+    n, d = R[:, 2], R[:, 2] @ t
+    s = board.square_mm
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    acc = np.zeros((h, w))
+    offs = (np.arange(ss) + 0.5) / ss - 0.5
+    for dv in offs:
+        for du in offs:
+            xn = cam.normalize(np.stack([u + du, v + dv], -1))
+            ray = np.concatenate([xn, np.ones((h, w, 1))], -1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                lam = d / (ray @ n)
+            pb = (ray * lam[..., None] - t) @ R
+            x, y = pb[..., 0] / s, pb[..., 1] / s
+            grid = (x >= -1) & (x < board.cols) & (y >= -1) & (y < board.rows)
+            paper = (x >= -2) & (x < board.cols + 1) & (y >= -2) & (y < board.rows + 1) & (lam > 0)
+            is_white = (np.floor(x) + np.floor(y)) % 2 == 0
+            acc += np.where(paper, np.where(grid & ~is_white, black, white), background)
+    img = acc / ss**2
+    if blur_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_px)
+    if noise > 0:
+        img = img + np.random.default_rng(seed).normal(0, noise, img.shape)
+    truth = cam.project(board.object_points() @ R.T + t)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8), truth
+
+
+# -- model -------------------------------------------------------------------------------------
+def test_object_points_follow_the_convention():
+    b = Board(4, 3, 25.0)
+    p = b.object_points()
+    assert p.shape == (12, 3) and p.dtype == np.float64
+    np.testing.assert_array_equal(p[0], [0, 0, 0])
+    np.testing.assert_array_equal(p[1], [25, 0, 0])  # x fastest
+    np.testing.assert_array_equal(p[4], [0, 25, 0])
+    np.testing.assert_array_equal(p[-1], [75, 50, 0])
+    assert b.pattern_size == (4, 3) and b.n_corners == 12
+
+
+@pytest.mark.parametrize("args, match", [((1, 5, 20.0), "cols"), ((5, 0, 20.0), "rows"), ((5, 4, 0.0), "square_mm"),
+                                         ((5, 4, float("nan")), "square_mm"), ((5.5, 4, 20.0), "cols")])
+def test_board_rejects_bad_parameters(args, match):
+    with pytest.raises(GBError, match=match):
+        Board(*args)
+
+
+def test_parse_board():
+    assert parse_board("9x6", 25) == Board(9, 6, 25.0)
+    assert parse_board("9X6", 25) == Board(9, 6, 25.0)
+    for bad in ("9", "9x", "axb", "9x6x2"):
+        with pytest.raises(GBError, match="COLSxROWS"):
+            parse_board(bad, 25)
+
+
+# -- detection accuracy ------------------------------------------------------------------------
+@pytest.mark.parametrize("angles", [(20, -25, 5), (-30, 15, -10), (10, 35, 30)])
+def test_detected_corners_match_truth(angles):
+    b = Board(9, 6, 25.0)
+    R, t = centred_pose(b, rot(*angles), 620.0, (10.0, -5.0))
+    img, truth = render_board(b, R, t, noise=1.0, seed=3)
+    det = detect(img, b)
+    assert isinstance(det, Detection) and det.image_size == (640, 480)
+    err = np.linalg.norm(det.corners - truth, axis=1)
+    assert np.sqrt(np.mean(err**2)) < 0.1 and err.max() < 0.3
+    assert det.corners.shape == (54, 2) and det.corners.dtype == np.float64
+    assert 1.0 < det.sharpness_px < 4.0 and det.contrast > 100
+
+
+def test_refinement_beats_the_sector_detector_alone():
+    b = Board(9, 6, 25.0)
+    errs = {}
+    for refine in (True, False):
+        e = []
+        for k, ang in enumerate([(20, -25, 5), (-30, 15, -10)]):
+            R, t = centred_pose(b, rot(*ang), 600.0)
+            img, truth = render_board(b, R, t, blur_px=1.0, noise=1.0, seed=k)
+            e.append(detect(img, b, refine=refine).corners - truth)
+        errs[refine] = np.sqrt(np.mean(np.sum(np.concatenate(e) ** 2, axis=1)))
+    assert errs[True] < 0.8 * errs[False], errs
+
+
+def test_colour_and_grey_input_agree():
+    b = Board(7, 5, 30.0)
+    R, t = centred_pose(b, rot(15, -20, 0), 650.0)
+    img, _ = render_board(b, R, t, ss=3)
+    rgb = np.repeat(img[:, :, None], 3, axis=2)
+    np.testing.assert_allclose(detect(rgb, b).corners, detect(img, b).corners, atol=1e-9)
+
+
+# -- canonical order ---------------------------------------------------------------------------
+@pytest.mark.parametrize("spin", [0.0, 90.0, 180.0, 270.0, 150.0])
+def test_order_follows_white_first_square_on_asymmetric_boards(spin):
+    # cols + rows odd: the first square's colour fixes the order whatever the in-plane rotation
+    b = Board(8, 5, 25.0)
+    R, t = centred_pose(b, rot(15, -10, 0) @ rot(0, 0, spin), 600.0)
+    img, truth = render_board(b, R, t, ss=3)
+    det = detect(img, b)
+    assert det is not None
+    np.testing.assert_allclose(det.corners, truth, atol=0.3)
+
+
+def test_symmetric_board_takes_the_order_with_x_to_the_right():
+    # cols + rows even: 180-degree turns look the same; the documented tie-break is x -> image right
+    b = Board(7, 5, 25.0)
+    for spin in (0.0, 180.0):
+        R, t = centred_pose(b, rot(0, 0, spin), 600.0)
+        img, truth = render_board(b, R, t, ss=3)
+        det = detect(img, b)
+        expected = truth if spin == 0 else truth[::-1]
+        np.testing.assert_allclose(det.corners, expected, atol=0.3)
+        assert det.corners[b.cols - 1, 0] > det.corners[0, 0]
+
+
+def test_canonical_order_undoes_any_detector_order():
+    b = Board(6, 4, 25.0)
+    R, t = centred_pose(b, rot(10, 20, 0), 600.0)
+    img, truth = render_board(b, R, t, ss=3)
+    g = truth.reshape(b.rows, b.cols, 2)
+    for scrambled in (g[::-1, ::-1], g[:, ::-1], g[::-1, :], g):
+        np.testing.assert_array_equal(canonical_order(scrambled.reshape(-1, 2), b, img), truth)
+
+
+# -- rejections with reasons -------------------------------------------------------------------
+def test_no_board_gives_a_reason():
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (240, 320)).astype(np.uint8), (0, 0), 3)
+    det, why = detect_with_reason(img, Board(9, 6, 25.0))
+    assert det is None and "no 9x6 checkerboard" in why
+    det, why = detect_with_reason(np.full((240, 320), 128, np.uint8), Board(9, 6, 25.0))
+    assert det is None and "contrast" in why
+    assert detect(img, Board(9, 6, 25.0)) is None
+
+
+def test_blurred_board_is_rejected_with_its_edge_width():
+    b = Board(7, 5, 30.0)
+    R, t = centred_pose(b, rot(10, -15, 0), 550.0)
+    img, _ = render_board(b, R, t, ss=2, blur_px=3.5)
+    det, why = detect_with_reason(img, b)
+    assert det is None and "blurred" in why and "px wide" in why
+    assert detect(img, b, max_sharpness_px=50.0) is not None  # the limit is the only reason
+
+
+def test_partial_board_is_rejected():
+    b = Board(9, 6, 25.0)
+    R, t = centred_pose(b, rot(0, 10, 0), 600.0, (-230.0, 0.0))  # left part outside the frame
+    img, truth = render_board(b, R, t, ss=2)
+    assert truth[:, 0].min() < 0 < truth[:, 0].max()
+    det, why = detect_with_reason(img, b)
+    assert det is None and why
+
+
+def test_low_contrast_board_is_rejected():
+    b = Board(7, 5, 30.0)
+    R, t = centred_pose(b, rot(10, -15, 0), 550.0)
+    img, _ = render_board(b, R, t, ss=2, white=130, black=118, background=125)
+    det, why = detect_with_reason(img, b)
+    assert det is None and why
+    if "contrast too low" not in why:  # OpenCV may not find so faint a board at all
+        assert "checkerboard" in why
+
+
+def test_wrong_board_size_is_not_found():
+    b = Board(7, 5, 30.0)
+    R, t = centred_pose(b, rot(10, -15, 0), 550.0)
+    img, _ = render_board(b, R, t, ss=2)
+    det, why = detect_with_reason(img, Board(8, 5, 30.0))
+    assert det is None and "8x5" in why
+
+
+def test_bad_image_arrays_raise():
+    b = Board(7, 5, 30.0)
+    with pytest.raises(GBError, match="8-bit"):
+        detect(np.zeros((100, 100), np.float32), b)
+    with pytest.raises(GBError, match="shape"):
+        detect(np.zeros((10, 100, 100), np.uint8), b)
+
+
+def test_preview_picture():
+    b = Board(7, 5, 30.0)
+    R, t = centred_pose(b, rot(10, -15, 0), 550.0)
+    img, truth = render_board(b, R, t, ss=2)
+    det = detect(img, b)
+    pic = draw_detection(img, b, det, reprojected=truth)
+    assert pic.shape == (480, 640, 3) and pic.dtype == np.uint8
+    assert np.any(pic[:, :, 0] != pic[:, :, 1])  # something coloured was drawn
+
+
+# -- the simulator and real images -------------------------------------------------------------
+@pytest.mark.slow
+def test_simulator_board_corners():
+    sim = pytest.importorskip("gbscan.sim")
+    from gbscan.rig import Rig
+
+    base = sim.paper_rig()
+    cam = Camera(320, 240, np.array([[600.0, 0, 159.5], [0, 600.0, 119.5], [0, 0, 1]]), [-0.1, 0.05, 0, 0, 0])
+    rig = Rig(cam, base.projector, base.R_cam_proj, base.t_cam_proj)
+    b = Board(8, 5, 20.0)  # cols + rows odd: the white first square fixes the order
+    white = np.full((rig.projector.height, rig.projector.width, 3), 255, np.uint8)
+    for k, ang in enumerate([(25, -20, 5), (-20, 25, 160)]):
+        R, t = centred_pose(b, rot(*ang), 550.0)
+        r = sim.render(rig, sim.scenes.board(b.cols, b.rows, b.square_mm, R, t), white, "typical", seed=k)
+        det = detect(r.image, b)
+        assert det is not None
+        truth = cam.project(b.object_points() @ R.T + t)
+        err = np.linalg.norm(det.corners - truth, axis=1)
+        assert np.sqrt(np.mean(err**2)) < 0.1, k
+
+
+def test_bouguet_images_detected_in_canonical_order():
+    if not BOUGUET.is_dir():
+        pytest.skip(f"{BOUGUET} not present (shared developer data)")
+    from gbscan.io import read_image_gray
+
+    b = Board(13, 12, 30.0)
+    for name in ("Image1.tif", "Image11.tif", "Image20.tif"):
+        img = read_image_gray(BOUGUET / name)
+        det = detect(img, b)
+        assert det is not None and 2.0 < det.sharpness_px < 6.0
+        # first square white: the mean grey inside it exceeds that of its neighbour square
+        c = det.corners.reshape(b.rows, b.cols, 2)
+        first = np.mean([c[0, 0], c[0, 1], c[1, 0], c[1, 1]], axis=0)
+        second = np.mean([c[0, 1], c[0, 2], c[1, 1], c[1, 2]], axis=0)
+        val = lambda p: float(img[int(round(p[1])), int(round(p[0]))])  # noqa: E731
+        assert val(first) > val(second) + 40
