@@ -1,0 +1,355 @@
+"""A capture session -> a refined :class:`gbscan.calibfile.Calibration` (``gbcal calibrate``).
+
+Stages (each prints progress lines through ``log``):
+
+1. per capture: the board in ``white`` (:func:`gbcal.board.detect_with_reason`; a capture whose
+   board is missing, cut, blurred or too dark is dropped with its reason), then the Gray-code
+   frames -> sub-pixel stripe-boundary samples (:mod:`gbcal.planes`);
+2. camera intrinsics and board poses from the corners (:func:`gbcal.intrinsics.calibrate_camera`,
+   which also rejects outlier captures and degenerate, all-parallel capture sets);
+3. boundary samples back-projected onto their boards -> one robust plane per boundary index ->
+   the initial pinhole projector (:func:`gbcal.planes.projector_from_planes`);
+4. bundle refinement of everything together (:mod:`gbcal.bundle`);
+5. the calibration: planes of every boundary index seen, from the refined projector model.
+
+:func:`save_run` writes ``calib.yaml`` and, beside it, ``calib.residuals.npz`` with every
+residual sample (for ``gbcal report``); the yaml's ``residuals.samples`` names it.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gbscan.calibfile import Calibration, save_calibration
+from gbscan.errors import GBError
+from gbscan.io import Session, load_session, read_image_rgb, save_npz
+from gbscan.pattern import PatternSpec
+
+from . import planes as pl
+from .patterns import frame_names, n_gray_bits
+
+#: Fewest usable captures for a rig calibration.
+MIN_CAPTURES = 4
+
+
+@dataclass
+class CaptureInfo:
+    """What happened to one capture (pose folder)."""
+
+    name: str
+    used: bool = False
+    reason: str = ""
+    n_corners: int = 0
+    n_samples: int = 0
+    corner_rms_px: float = float("nan")
+    stripe_rms_px: float = float("nan")
+    stripe_rms_proj_px: float = float("nan")
+
+
+@dataclass
+class CalibrationRun:
+    """Everything one calibration produced: the calibration, the per-capture story, the samples."""
+
+    calibration: Calibration
+    captures: list[CaptureInfo]
+    samples: dict            # arrays for the residuals .npz (see save_run)
+    bundle: object           # gbcal.bundle.BundleResult
+    timings: dict = field(default_factory=dict)
+
+
+def pattern_of_session(session: Session) -> PatternSpec:
+    """The pattern a session was captured with: ``session.yaml``'s ``pattern`` if present, else
+    the default stripe width at the session's projector size; checked against the frame list."""
+    d = session.extra.get("pattern")
+    if isinstance(d, dict):
+        try:
+            spec = PatternSpec.from_dict(d)
+        except (KeyError, TypeError, ValueError) as e:
+            raise GBError(f"session {session.root}: 'pattern' must be {{width, height, stripe_px, markers}} ({e})") \
+                from None
+    else:
+        spec = PatternSpec(*session.projector_size)
+    if (spec.width, spec.height) != tuple(session.projector_size):
+        raise GBError(f"session {session.root}: pattern size {spec.width}x{spec.height} differs from the "
+                      f"projector size {session.projector_size[0]}x{session.projector_size[1]}")
+    need = [n for n in frame_names(spec) if n != "stripes"]
+    missing = [n for n in need if n not in session.frames]
+    if missing:
+        raise GBError(f"session {session.root}: frames {', '.join(missing[:4])} are not listed in session.yaml; "
+                      f"a rig calibration needs white, black and the {n_gray_bits(spec)} Gray-code bits "
+                      f"(+ inverses) of 'gbcal patterns' for stripe width {spec.stripe_px}")
+    return spec
+
+
+def _read(session: Session, pose: int, name: str) -> np.ndarray:
+    return read_image_rgb(session.frame_path(pose, name), size=session.camera_size,
+                          what=f"capture {session.poses[pose].name} frame '{name}'")
+
+
+def calibrate_session(session_dir, *, model: str = "k1k2p1p2", loss: str = "soft_l1", f_scale_px: float = 0.5,
+                      stripe_weight: float = 1.0, max_samples_per_capture: int = 6000,
+                      min_captures: int = MIN_CAPTURES, log=None, seed: int = 0) -> CalibrationRun:
+    """Calibrate the rig from a capture session folder (module docstring).
+
+    model : camera distortion model (:data:`gbcal.bundle.DIST_MODELS`).
+    loss, f_scale_px : robust loss of the bundle and its scale (camera px).
+    stripe_weight : weight of a boundary sample relative to a corner coordinate.
+    max_samples_per_capture : boundary samples kept per capture (random, seeded), for speed.
+    Raises GBError for unreadable/missing/mis-sized frames, too few usable captures, or an
+    unobservable capture set.
+    """
+    from .board import Board, detect_with_reason
+    from .bundle import BundleData, refine, rodrigues, rotation_vector
+    from .intrinsics import calibrate_camera
+
+    log = log or (lambda s: print(s, file=sys.stderr, flush=True))
+    t_start = time.perf_counter()
+    timings = {}
+    session = load_session(session_dir)
+    spec = pattern_of_session(session)
+    board = Board(session.board_cols, session.board_rows, session.square_mm)
+    names = [p.name for p in session.poses]
+    captures = [CaptureInfo(n) for n in names]
+    log(f"session {session.root}: {len(names)} captures, board {board}, camera "
+        f"{session.camera_size[0]}x{session.camera_size[1]}, pattern {spec.n_stripes} stripes of {spec.stripe_px} px")
+
+    # 1. per capture: board + boundary samples
+    frames_needed = ["black"] + [f"gray_{b:02d}{s}" for b in range(n_gray_bits(spec)) for s in ("", "_inv")]
+    detections, samples = [], []
+    for i, name in enumerate(names):
+        white = _read(session, i, "white")
+        det, why = detect_with_reason(white, board)
+        if det is None:
+            captures[i].reason = f"no usable board: {why}"
+            detections.append(None)
+            samples.append(None)
+            log(f"  [{i + 1}/{len(names)}] {name}: dropped ({captures[i].reason})")
+            continue
+        frames = {"white": white}
+        for fn in frames_needed:
+            frames[fn] = _read(session, i, fn)
+        dec = pl.gray_decode(frames, spec)
+        bs = pl.gray_boundaries(dec, spec)
+        detections.append(det)
+        samples.append(bs)
+        captures[i].n_corners = board.n_corners
+        log(f"  [{i + 1}/{len(names)}] {name}: board found (edge width {det.sharpness_px:.1f} px), "
+            f"{len(bs)} boundary samples on {np.unique(bs.index).size} boundaries")
+    timings["captures_s"] = time.perf_counter() - t_start
+
+    # 2. camera intrinsics and board poses
+    t0 = time.perf_counter()
+    found = sum(d is not None for d in detections)
+    if found < min_captures:
+        raise GBError(_too_few(found, min_captures, captures))
+    cam_res = calibrate_camera(detections, board, session.camera_size, model=model, names=names)
+    for i, v in enumerate(cam_res.views):
+        if not v.used and detections[i] is not None:
+            captures[i].reason = v.reason or "rejected by the camera calibration"
+    used = [i for i, v in enumerate(cam_res.views) if v.used]
+    if len(used) < min_captures:
+        raise GBError(_too_few(len(used), min_captures, captures))
+    cam0 = cam_res.camera
+    timings["camera_s"] = time.perf_counter() - t0
+    log(f"  camera (initial, {len(used)} captures): fx {cam0.K[0, 0]:.2f} fy {cam0.K[1, 1]:.2f} "
+        f"cx {cam0.K[0, 2]:.2f} cy {cam0.K[1, 2]:.2f} px, corner RMS {cam_res.rms_px:.3f} px")
+
+    # 3. samples on the boards -> planes -> projector
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    obj = board.object_points()
+    c_pose, c_uv, c_xyz, s_pose, s_uv, s_k, s_p = [], [], [], [], [], [], []
+    for j, i in enumerate(used):
+        v = cam_res.views[i]
+        bs = samples[i]
+        p_cam, p_board = pl.backproject_to_board(cam0, bs.uv, v.R, v.t)
+        keep = np.isfinite(p_board[:, 0]) & pl.on_board(p_board, board.cols, board.rows, board.square_mm)
+        idx = np.flatnonzero(keep)
+        if idx.size > max_samples_per_capture:
+            idx = np.sort(rng.choice(idx, max_samples_per_capture, replace=False))
+        c_pose.append(np.full(len(obj), j)), c_uv.append(detections[i].corners), c_xyz.append(obj)
+        s_pose.append(np.full(idx.size, j)), s_uv.append(bs.uv[idx]), s_k.append(bs.index[idx])
+        s_p.append(p_cam[idx])
+        captures[i].n_samples = int(idx.size)
+    s_pose = np.concatenate(s_pose).astype(np.int64)
+    s_uv, s_k, s_p = np.concatenate(s_uv), np.concatenate(s_k).astype(np.int64), np.concatenate(s_p)
+    fit = pl.fit_planes(s_p, s_k)
+    if fit.index.size < 3:
+        raise GBError(f"only {fit.index.size} light planes could be fitted from the board captures; the "
+                      "stripes must be seen on boards at two or more different depths/tilts (are the "
+                      "projector frames captured? is the board lit by the projector?)")
+    keep = fit.sample_inlier
+    rig0 = pl.projector_from_planes(spec.boundary_column(fit.index), fit.normal, fit.d,
+                                    projector_size=(spec.width, spec.height), scene_point=s_p.mean(axis=0),
+                                    camera=cam0)
+    timings["planes_s"] = time.perf_counter() - t0
+    log(f"  planes: {fit.index.size} boundaries fitted from {int(keep.sum())} samples "
+        f"(median plane RMS {np.median(fit.rms_mm):.3f} mm, {int((~keep).sum())} outliers dropped); "
+        f"initial projector fx {rig0.projector.K[0, 0]:.1f} cx {rig0.projector.K[0, 2]:.1f} px, "
+        f"baseline {np.linalg.norm(rig0.t_cam_proj):.1f} mm")
+
+    # 4. bundle
+    t0 = time.perf_counter()
+    data = BundleData(np.concatenate(c_pose).astype(np.int64), np.concatenate(c_uv), np.concatenate(c_xyz),
+                      s_pose[keep], s_uv[keep], spec.boundary_column(s_k[keep]), len(used))
+    rv0 = np.array([rotation_vector(cam_res.views[i].R) for i in used])
+    tv0 = np.array([cam_res.views[i].t for i in used])
+    res = refine(data, cam0, rv0, tv0, rig0, dist_model=model, loss=loss, f_scale_px=f_scale_px,
+                 stripe_weight=stripe_weight, log=log)
+    timings["bundle_s"] = time.perf_counter() - t0
+
+    # 5. calibration
+    rig = res.rig
+    k_seen = np.unique(s_k[keep])
+    cols = spec.boundary_column(k_seen)
+    n, d = rig.column_planes(cols)
+    # residual samples: distance of each sample's refined board point to its refined plane
+    Rb = rodrigues(res.rvecs)
+    sp_all = data.stripe_pose
+    p_cam = np.empty((len(sp_all), 3))
+    for j in range(len(used)):
+        m = sp_all == j
+        p_cam[m], _ = pl.backproject_to_board(rig.camera, data.stripe_uv[m], Rb[j], res.tvecs[j])
+    n_s, d_s = rig.column_planes(data.stripe_column)
+    plane_dist = np.einsum("ij,ij->i", n_s, p_cam) - d_s
+    per = []
+    for j, i in enumerate(used):
+        c = captures[i]
+        c.used = True
+        rc = res.corner_residual_px[data.corner_pose == j]
+        rs = res.stripe_residual_px[(sp_all == j) & res.stripe_inlier]
+        rsp = res.stripe_residual_proj_px[(sp_all == j) & res.stripe_inlier]
+        c.corner_rms_px = float(np.sqrt(np.mean(np.sum(rc ** 2, axis=1))))
+        c.stripe_rms_px = float(np.sqrt(np.mean(rs ** 2))) if rs.size else float("nan")
+        c.stripe_rms_proj_px = float(np.sqrt(np.mean(rsp ** 2))) if rsp.size else float("nan")
+    for c in captures:
+        e = {"capture": c.name, "used": c.used}
+        if c.used:
+            e.update(corners=c.n_corners, stripe_samples=c.n_samples, corner_rms_px=_r(c.corner_rms_px),
+                     stripe_rms_px=_r(c.stripe_rms_px), stripe_rms_proj_px=_r(c.stripe_rms_proj_px))
+        else:
+            e["reason"] = c.reason
+        per.append(e)
+    rc_all = res.corner_residual_px
+    inl = res.stripe_inlier
+    residuals = {  # RMS over the inliers of the bundle; corner RMS is per corner (2D distance)
+        "corner_rms_px": _r(np.sqrt(np.mean(np.sum(rc_all ** 2, axis=1)))),
+        "stripe_rms_px": _r(np.sqrt(np.mean(res.stripe_residual_px[inl] ** 2))),
+        "stripe_rms_proj_px": _r(np.sqrt(np.mean(res.stripe_residual_proj_px[inl] ** 2))),
+        "plane_rms_mm": _r(np.sqrt(np.mean(plane_dist[inl] ** 2))),
+        "corners": int(len(rc_all)), "stripe_samples": int(inl.sum()),
+        "stripe_outliers": int((~inl).sum()) + int((~keep).sum()),
+        "captures_used": len(used), "captures_total": len(names),
+        "camera_model": model, "loss": loss, "f_scale_px": f_scale_px, "stripe_weight": stripe_weight,
+        "stripe_residual_unit": "camera px along the row (projector px / |d column / d u|)",
+        "captures": per,
+    }
+    std = res.std
+    n_std_deg, d_std_mm = res.plane_std(cols)
+    uncertainty = {
+        "camera_std": {k: _g(std[k]) for k in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3") if k in std},
+        "projector_std": {k.replace("proj_", ""): _g(v) for k, v in std.items() if k.startswith("proj_")},
+        "baseline_std_mm": _g(std.get("baseline_mm", float("nan"))),
+        "plane_normal_std_deg": {"median": _g(np.median(n_std_deg)), "max": _g(np.max(n_std_deg))},
+        "plane_d_std_mm": {"median": _g(np.median(d_std_mm)), "max": _g(np.max(d_std_mm))},
+        "residual_sigma": {k: _g(v) for k, v in res.sigma.items()},
+        "note": "1-sigma from (J^T W J)^-1, W = inverse variance of each residual kind (inliers)",
+    }
+    projector = {
+        "model": "pinhole",
+        "width": int(spec.width), "height": int(spec.height),
+        "matrix": rig.projector.K.tolist(),
+        "R_cam_proj": rig.R_cam_proj.tolist(),
+        "t_cam_proj": rig.t_cam_proj.tolist(),
+        "baseline_mm": float(np.linalg.norm(rig.t_cam_proj)),
+        "unobserved": "vertical stripes observe columns only: matrix fy, cy and the centre's position "
+                      "along the projector y axis are conventions, not measurements",
+    }
+    calib = Calibration(rig.camera, k_seen, cols, n, d, pattern=spec, projector=projector,
+                        created={"tool": "gbcal calibrate", "session": str(session.root)},
+                        residuals=residuals, uncertainty=uncertainty)
+    capture_of_pose = np.array([names[i] for i in used])
+    arrays = {
+        "image_size": np.array(session.camera_size, np.int64),
+        "capture_names": np.array(names),
+        "used_captures": capture_of_pose,
+        "corner_pose": data.corner_pose, "corner_uv": data.corner_uv,
+        "corner_residual_px": res.corner_residual_px,
+        "stripe_pose": sp_all, "stripe_uv": data.stripe_uv, "stripe_index": s_k[keep],
+        "stripe_residual_px": res.stripe_residual_px,
+        "stripe_residual_proj_px": res.stripe_residual_proj_px,
+        "stripe_inlier": res.stripe_inlier,
+        "stripe_plane_distance_mm": plane_dist,
+        "plane_index": k_seen, "plane_normal_std_deg": n_std_deg, "plane_d_std_mm": d_std_mm,
+        "plane_fit_index": fit.index, "plane_fit_rms_mm": fit.rms_mm, "plane_fit_n": fit.n_inliers,
+        "board_rvec": res.rvecs, "board_tvec": res.tvecs,
+    }
+    timings["total_s"] = time.perf_counter() - t_start
+    return CalibrationRun(calib, captures, arrays, res, timings)
+
+
+def save_run(path, run: CalibrationRun) -> tuple[Path, Path]:
+    """Write ``path`` (the calibration YAML) and ``<stem>.residuals.npz`` beside it, atomically;
+    if the YAML cannot be written the .npz is removed again.  Returns both paths."""
+    path = Path(path)
+    npz = path.with_name(path.stem + ".residuals.npz")
+    existed = npz.exists()
+    save_npz(npz, **run.samples)
+    run.calibration.residuals["samples"] = npz.name
+    try:
+        save_calibration(path, run.calibration)
+    except BaseException:
+        if not existed:
+            npz.unlink(missing_ok=True)
+        raise
+    return path, npz
+
+
+def summary_lines(run: CalibrationRun) -> list[str]:
+    """The human summary ``gbcal calibrate`` prints."""
+    cal = run.calibration
+    K = cal.camera.K
+    st = cal.uncertainty.get("camera_std", {})
+    r = cal.residuals
+    used = [c for c in run.captures if c.used]
+    out = [f"captures: {len(used)} used of {len(run.captures)}"]
+    for c in run.captures:
+        if not c.used:
+            out.append(f"  dropped {c.name}: {c.reason}")
+    out.append(f"corner RMS {r['corner_rms_px']:.3f} px over {r['corners']} corners; stripe RMS "
+               f"{r['stripe_rms_px']:.3f} px ({r['stripe_rms_proj_px']:.3f} projector px, "
+               f"{r['plane_rms_mm']:.3f} mm from the planes) over {r['stripe_samples']} boundary samples")
+    out.append(f"camera fx {K[0, 0]:.2f} ± {st.get('fx', float('nan')):.2f}  fy {K[1, 1]:.2f} ± "
+               f"{st.get('fy', float('nan')):.2f}  cx {K[0, 2]:.2f} ± {st.get('cx', float('nan')):.2f}  "
+               f"cy {K[1, 2]:.2f} ± {st.get('cy', float('nan')):.2f} px; distortion "
+               + " ".join(f"{v:+.4f}" for v in cal.camera.dist))
+    pj = cal.projector or {}
+    ps = cal.uncertainty.get("projector_std", {})
+    out.append(f"projector fx {pj['matrix'][0][0]:.1f} ± {ps.get('fx', float('nan')):.1f}  cx "
+               f"{pj['matrix'][0][2]:.1f} ± {ps.get('cx', float('nan')):.1f} px; baseline "
+               f"{pj['baseline_mm']:.2f} ± {cal.uncertainty.get('baseline_std_mm', float('nan')):.2f} mm; "
+               f"{cal.n_planes} light planes (boundaries {cal.plane_index[0]}..{cal.plane_index[-1]}, normals ± "
+               f"{cal.uncertainty.get('plane_normal_std_deg', {}).get('max', float('nan')):.4f} deg at most)")
+    worst = sorted(used, key=lambda c: -c.stripe_rms_px if np.isfinite(c.stripe_rms_px) else 0)[:1]
+    if worst:
+        out.append(f"worst capture: {worst[0].name} (corner RMS {worst[0].corner_rms_px:.3f} px, stripe RMS "
+                   f"{worst[0].stripe_rms_px:.3f} px)")
+    return out
+
+
+def _too_few(n: int, need: int, captures: list[CaptureInfo]) -> str:
+    why = "; ".join(f"{c.name}: {c.reason}" for c in captures if c.reason)[:600]
+    return (f"too few usable captures: {n} (need at least {need}, 10-20 recommended with the board at varied "
+            f"tilts and distances){'; dropped ' + why if why else ''}")
+
+
+def _r(x) -> float:
+    return float(f"{float(x):.6g}")
+
+
+def _g(x) -> float:
+    return float(f"{float(x):.6g}")

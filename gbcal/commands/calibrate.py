@@ -1,0 +1,58 @@
+"""Calibrate the whole rig from a capture session: camera, board poses and projector, refined together.
+
+Per capture the board is found in the `white` frame (captures without a usable board are dropped
+with the reason), the Gray-code frames give sub-pixel stripe boundaries on the board, the camera
+is calibrated from the corners, one plane is fitted per stripe boundary, a pinhole projector is
+fitted to the planes, and one robust bundle adjustment refines camera, board poses and projector
+against corner and stripe residuals together.  Writes CALIB (YAML) and CALIB's
+<stem>.residuals.npz beside it (for 'gbcal report'); nothing is written if the run fails.
+"""
+from __future__ import annotations
+
+HELP = "calibrate camera + projector light planes from a capture session"
+
+
+def add_arguments(p):
+    p.add_argument("session", help="capture session folder (session.yaml + pose_NNN/)")
+    p.add_argument("-o", "--output", required=True, help="calibration file to write (YAML)")
+    p.add_argument("--preview", metavar="DIR", help="also write per-capture pictures (board, boundary samples) here")
+    p.add_argument("--model", default="k1k2p1p2", choices=["k1k2p1p2k3", "k1k2p1p2", "k1k2", "k1", "none"],
+                   help="camera distortion model (default k1k2p1p2: k3 fixed at 0)")
+    p.add_argument("--loss", default="soft_l1", choices=["soft_l1", "huber", "cauchy", "linear"],
+                   help="robust loss of the bundle adjustment (default soft_l1)")
+    p.add_argument("--f-scale-px", type=float, default=0.5,
+                   help="residual (camera px) where the robust loss starts to down-weight (default 0.5)")
+    p.add_argument("--stripe-weight", type=float, default=1.0,
+                   help="weight of a stripe-boundary sample relative to a corner coordinate (default 1)")
+    p.add_argument("--max-samples", type=int, default=6000,
+                   help="stripe-boundary samples used per capture, drawn at random (default 6000; fewer is "
+                        "faster, more pins the principal point and the planes down better)")
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from gbscan.errors import GBError
+
+    from ..calibrate import calibrate_session, save_run, summary_lines
+
+    if args.f_scale_px <= 0 or args.stripe_weight <= 0 or args.max_samples < 10:
+        raise GBError("--f-scale-px and --stripe-weight must be positive and --max-samples at least 10")
+    out = Path(args.output)
+    if not out.parent.is_dir():
+        raise GBError(f"cannot write {out}: folder {out.parent} does not exist (create it first)")
+    run_ = calibrate_session(args.session, model=args.model, loss=args.loss, f_scale_px=args.f_scale_px,
+                             stripe_weight=args.stripe_weight, max_samples_per_capture=args.max_samples)
+    if args.preview:
+        from ..report import write_capture_previews
+
+        written = write_capture_previews(args.session, run_, args.preview)
+        print(f"wrote {len(written)} preview pictures to {args.preview}")
+    path, npz = save_run(out, run_)
+    for line in summary_lines(run_):
+        print(line)
+    t = run_.timings
+    print(f"time: captures {t['captures_s']:.1f} s, camera {t['camera_s']:.1f} s, planes {t['planes_s']:.1f} s, "
+          f"bundle {t['bundle_s']:.1f} s, total {t['total_s']:.1f} s")
+    print(f"wrote {path} ({run_.calibration.n_planes} light planes) and {npz.name}")
+    return 0

@@ -1,0 +1,213 @@
+"""Scan one camera frame: decode the stripes, triangulate, clean, and write the point cloud.
+
+Outputs (each written atomically; a failed run leaves none half-written):
+  -o cloud.ply     binary PLY: x y z nx ny nz (float32, mm, camera frame), confidence, and the
+                   camera pixel row/col of each point (int32), so 'gbscan mesh --method grid'
+                   can rebuild the organised grid; any PLY viewer reads the points and normals.
+  --xyz xyz.npy    float32 (H, W, 3) organised point map, mm, NaN where no point.
+  --mesh mesh.ply  triangle mesh (.ply, .obj or .stl), grid (default) or poisson.
+  --preview DIR    PNG pictures: depth map, coverage by reason, shaded mesh from the camera and
+                   from an angle (DIR is created if its parent exists).
+
+The cleaning counts, points, coverage and timings are printed.  --no-clean keeps every
+triangulated point (for looking at what the filters remove).
+"""
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+HELP = "scan one frame: decode, triangulate, clean -> point cloud (+ xyz map, mesh, previews)"
+
+
+def add_arguments(p):
+    p.add_argument("image", help="camera frame of the stripe pattern (colour PNG/JPEG/TIFF...)")
+    p.add_argument("--calib", required=True, help="calibration file (gbcal calibrate)")
+    p.add_argument("-o", "--output", required=True, help="output point cloud (.ply)")
+    p.add_argument("--xyz", help="also write the organised point map (.npy, float32 H x W x 3, NaN holes)")
+    p.add_argument("--mesh", help="also write a mesh (.ply, .obj or .stl)")
+    p.add_argument("--preview", metavar="DIR", help="write preview pictures into DIR")
+    g = p.add_argument_group("meshing")
+    g.add_argument("--method", choices=("grid", "poisson"), default="grid",
+                   help="grid: triangulate the pixel grid (fast, default); poisson: watertight-ish surface")
+    g.add_argument("--depth", type=int, default=9, help="Poisson octree depth (default 9)")
+    g.add_argument("--smooth", type=int, default=0, metavar="N", help="Taubin smoothing iterations (default 0)")
+    g = p.add_argument_group("decoding")
+    g.add_argument("--blur-px", type=float, metavar="SIGMA",
+                   help="decoder blur sigma along the stripes, camera px (default: decoder's)")
+    g.add_argument("--window-px", type=int, metavar="N",
+                   help="decoder local threshold/normalisation window, camera px (default: decoder's)")
+    g.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
+                   help="any other gbscan.decode.DecodeParams field (repeatable)")
+    g = p.add_argument_group("cleaning")
+    g.add_argument("--no-clean", action="store_true", help="keep every triangulated point")
+    g.add_argument("--min-confidence", type=float, help="drop points below this decoder confidence (0..1)")
+    g.add_argument("--depth-range", type=float, nargs=2, metavar=("MIN_MM", "MAX_MM"), help="accepted z range, mm")
+    g.add_argument("--max-jump", type=float, help="depth discontinuity: neighbour jump as a fraction of depth")
+    g.add_argument("--max-angle-deg", type=float, help="maximum angle between viewing ray and surface normal")
+    g.add_argument("--outlier-tol", type=float,
+                   help="spikes: deviation from the neighbours' mean, as a fraction of depth (default 0.002)")
+    g.add_argument("--min-cluster-px", type=int, help="drop connected pieces smaller than this (px)")
+
+
+def _check_output(path: str | None, suffixes: tuple[str, ...], what: str) -> Path | None:
+    from ..errors import GBError
+
+    if path is None:
+        return None
+    path = Path(path)
+    if path.suffix.lower() not in suffixes:
+        raise GBError(f"{what} {path}: the name must end in {' or '.join(suffixes)}")
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise GBError(f"cannot write {what} {path}: folder {folder} does not exist (create it first)")
+    if not os.access(folder, os.W_OK):
+        raise GBError(f"cannot write {what} {path}: folder {folder} is not writable")
+    return path
+
+
+def _check_preview_dir(path: str | None) -> Path | None:
+    from ..errors import GBError
+
+    if path is None:
+        return None
+    d = Path(path)
+    if d.exists() and not d.is_dir():
+        raise GBError(f"--preview {d} exists and is not a folder")
+    parent = d if d.is_dir() else (d.parent if str(d.parent) else Path("."))
+    if not parent.is_dir():
+        raise GBError(f"--preview {d}: folder {parent} does not exist (create it first)")
+    if not os.access(parent, os.W_OK):
+        raise GBError(f"--preview {d}: folder {parent} is not writable")
+    return d
+
+
+def decode_params_from_args(args):
+    """DecodeParams from --blur-px/--window-px/--decode-param, or None for the defaults."""
+    import dataclasses
+
+    from ..decode import DecodeParams
+    from ..errors import GBError
+
+    fields = {f.name: f for f in dataclasses.fields(DecodeParams)}
+    kw = {}
+    if args.blur_px is not None:
+        kw["blur_sigma_along_px"] = args.blur_px
+    if args.window_px is not None:
+        kw["threshold_window_px"] = args.window_px
+        kw["norm_window_px"] = args.window_px
+    defaults = DecodeParams()
+    for item in args.decode_param:
+        name, sep, value = item.partition("=")
+        name = name.strip().replace("-", "_")
+        if not sep or name not in fields or name == "unwrap":
+            known = ", ".join(n for n in fields if n != "unwrap")
+            raise GBError(f"--decode-param {item!r}: expected NAME=VALUE with NAME one of {known}")
+        current = getattr(defaults, name)
+        try:
+            if value.strip().lower() in ("none", "null"):
+                kw[name] = None
+            elif isinstance(current, bool):
+                kw[name] = value.strip().lower() in ("1", "true", "yes", "on")
+            elif isinstance(current, int) or name.endswith("window_px"):
+                kw[name] = int(value)
+            elif isinstance(current, float):
+                kw[name] = float(value)
+            else:
+                kw[name] = value.strip()
+        except ValueError:
+            raise GBError(f"--decode-param {item!r}: {value!r} is not a valid {type(current).__name__}") from None
+    return DecodeParams(**kw) if kw else None
+
+
+def clean_params_from_args(args):
+    from ..clean import CleanParams
+
+    kw = {}
+    if args.min_confidence is not None:
+        kw["min_confidence"] = args.min_confidence
+    if args.depth_range is not None:
+        kw["min_depth_mm"], kw["max_depth_mm"] = args.depth_range
+    for name in ("max_jump", "max_angle_deg", "outlier_tol", "min_cluster_px"):
+        if getattr(args, name) is not None:
+            kw[name] = getattr(args, name)
+    return CleanParams(**kw)
+
+
+def run(args) -> int:
+    t_start = time.perf_counter()
+    from ..errors import GBError
+
+    out = _check_output(args.output, (".ply",), "point cloud")
+    xyz_path = _check_output(args.xyz, (".npy",), "--xyz")
+    mesh_path = _check_output(args.mesh, (".ply", ".obj", ".stl"), "--mesh")
+    preview = _check_preview_dir(args.preview)
+    if args.smooth < 0:
+        raise GBError(f"--smooth must be >= 0, got {args.smooth}")
+    clean_params = clean_params_from_args(args)
+
+    import numpy as np
+
+    from ..calibfile import load_calibration
+    from ..io import read_image_rgb, save_npy
+    from ..scan import Scanner
+
+    calib = load_calibration(args.calib)
+    cam = calib.camera
+    image = read_image_rgb(args.image, size=(cam.width, cam.height), what="image")
+    decode_params = decode_params_from_args(args)
+    t_load = time.perf_counter()
+    scanner = Scanner(calib, decode_params=decode_params, clean_params=clean_params)
+    t_setup = time.perf_counter()
+    scan = scanner.scan(image, clean=not args.no_clean, keep_stages=preview is not None)
+    if scan.n_points == 0:
+        why = (scan.stripemap.stats.get("why") if scan.stripemap is not None else None) or \
+            "no pixel both decoded and triangulated"
+        raise GBError(f"no points reconstructed from {args.image}: {why}. Check that the projector shows the "
+                      "'gbscan pattern' frame, the exposure, and that the calibration belongs to this rig")
+
+    c = scan.counts
+    steps = [k for k in c if k not in ("pixels", "input", "kept")]
+    print(f"{args.image}: {cam.width}x{cam.height}, {calib.n_planes} light planes")
+    print("removed: " + ", ".join(f"{k} {c[k]}" for k in steps))
+    print(f"points: {scan.n_points} ({100 * scan.coverage:.1f}% of the image)")
+
+    written = []
+    scan.save_ply(out)
+    written.append(("cloud", out))
+    if xyz_path is not None:
+        save_npy(xyz_path, np.ascontiguousarray(scan.xyz, dtype=np.float32))
+        written.append(("xyz map", xyz_path))
+    mesh = None
+    t_mesh = time.perf_counter()
+    if mesh_path is not None or preview is not None:
+        if args.method == "poisson" and mesh_path is not None:
+            print(f"Poisson reconstruction at depth {args.depth} ...", file=sys.stderr, flush=True)
+        mesh = scan.mesh_arrays(args.method if mesh_path is not None else "grid", depth=args.depth,
+                                smooth=args.smooth)
+    t_mesh = (time.perf_counter() - t_mesh) * 1e3
+    if mesh_path is not None:
+        from ..mesh import write_mesh
+
+        write_mesh(mesh_path, mesh)
+        written.append((f"{args.method} mesh ({mesh.n_vertices} vertices, {mesh.n_triangles} triangles)", mesh_path))
+    if preview is not None:
+        from ..preview.scan import write_scan_previews
+
+        print(f"drawing previews into {preview} ...", file=sys.stderr, flush=True)
+        preview.mkdir(exist_ok=True)
+        for p in write_scan_previews(scan, preview, camera=cam, mesh=mesh):
+            written.append(("preview", p))
+    tm = dict(scan.timings_ms)
+    tm.pop("total", None)
+    timing = ", ".join(f"{k} {v:.0f}" for k, v in tm.items())
+    if mesh is not None:
+        timing += f", mesh {t_mesh:.0f}"
+    print(f"time (ms): load {1e3 * (t_load - t_start):.0f}, setup {1e3 * (t_setup - t_load):.0f}, {timing}, "
+          f"command {1e3 * (time.perf_counter() - t_start):.0f}")
+    for what, path in written:
+        print(f"wrote {path}  ({what})")
+    sys.stdout.flush()
+    return 0

@@ -1,0 +1,478 @@
+"""Surfaces from scans: organised-grid mesh, Poisson, Taubin smoothing, and file export.
+
+Everything here works on numpy arrays (camera frame, mm); open3d is imported only for Poisson
+reconstruction and for the ``to_open3d`` conversions.
+
+Organised point clouds on disk
+------------------------------
+``gbscan scan`` writes its cloud as a binary little-endian PLY whose vertices carry, besides
+``x y z nx ny nz`` (float32, mm), the decoder ``confidence`` (float32) and the camera pixel they
+came from, ``row`` and ``col`` (int32), and a header comment ``gbscan_grid WIDTH HEIGHT``.  Any
+PLY reader (MeshLab, CloudCompare, open3d, Blender) reads the points and normals and ignores or
+keeps the extra properties; ``gbscan mesh --method grid`` uses them to rebuild the organised
+grid.  A PLY without them can still be meshed with ``--method poisson``.
+
+Mesh files: ``.ply`` (binary, vertex normals), ``.obj`` (text, ``v``/``vn``/``f v//vn``), ``.stl``
+(binary, triangle normals).  All writes are atomic (:func:`gbscan.io.atomic_path`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import GBError
+from .io import atomic_path
+
+MESH_SUFFIXES = (".ply", ".obj", ".stl")
+
+
+@dataclass(eq=False)
+class Mesh:
+    """A triangle mesh.
+
+    vertices : (V, 3) float64 mm (camera frame).
+    triangles : (T, 3) int64 vertex indices, counter-clockwise seen from the outside
+        (for scans: from the camera).
+    vertex_normals : (V, 3) float64 unit normals or None (computed on demand).
+    pixel : (V, 2) int32 camera pixel ``(row, col)`` of each vertex of a grid mesh, else None.
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    vertex_normals: np.ndarray | None = None
+    pixel: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.vertices = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
+        self.triangles = np.asarray(self.triangles, dtype=np.int64).reshape(-1, 3)
+        if self.triangles.size and (self.triangles.min() < 0 or self.triangles.max() >= len(self.vertices)):
+            raise GBError("mesh: triangle indices out of range")
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def n_triangles(self) -> int:
+        return int(self.triangles.shape[0])
+
+    def normals(self) -> np.ndarray:
+        """Vertex normals (V, 3), computed from the triangles if not stored."""
+        if self.vertex_normals is None:
+            self.vertex_normals = vertex_normals(self.vertices, self.triangles)
+        return self.vertex_normals
+
+    def to_open3d(self):
+        """An ``open3d.geometry.TriangleMesh`` with vertex normals."""
+        import open3d as o3d
+
+        m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices),
+                                      o3d.utility.Vector3iVector(self.triangles.astype(np.int32)))
+        m.vertex_normals = o3d.utility.Vector3dVector(np.nan_to_num(self.normals()))
+        return m
+
+    @classmethod
+    def from_open3d(cls, m) -> "Mesh":
+        v = np.asarray(m.vertices)
+        n = np.asarray(m.vertex_normals) if m.has_vertex_normals() else None
+        return cls(v.copy(), np.asarray(m.triangles).copy(), None if n is None else n.copy())
+
+
+# -- geometry ----------------------------------------------------------------------------------
+def _face_cross(v: np.ndarray, t: np.ndarray):
+    """Per-triangle (b - a) x (c - a) as three (T,) arrays (length = twice the area)."""
+    vx, vy, vz = (np.ascontiguousarray(v[:, k]) for k in range(3))
+    i0, i1, i2 = (np.ascontiguousarray(t[:, k]) for k in range(3))
+    ex, ey, ez = vx[i1] - vx[i0], vy[i1] - vy[i0], vz[i1] - vz[i0]
+    fx, fy, fz = vx[i2] - vx[i0], vy[i2] - vy[i0], vz[i2] - vz[i0]
+    return (ey * fz - ez * fy, ez * fx - ex * fz, ex * fy - ey * fx), (i0, i1, i2)
+
+
+def triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Unit normals (T, 3) of triangles (right-hand rule on the vertex order); zero if degenerate."""
+    (nx, ny, nz), _ = _face_cross(np.asarray(vertices, dtype=np.float64), np.asarray(triangles))
+    n = np.stack([nx, ny, nz], axis=1)
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals (V, 3); zero for vertices in no triangle."""
+    v = np.asarray(vertices, dtype=np.float64)
+    V = len(v)
+    n = np.zeros((V, 3))
+    if len(triangles) == 0:
+        return n
+    fn, idx = _face_cross(v, np.asarray(triangles))
+    for c in range(3):
+        n[:, c] = sum(np.bincount(i, weights=fn[c], minlength=V) for i in idx)
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+
+
+def grid_mesh(xyz: np.ndarray, valid: np.ndarray | None = None, *, max_jump: float = 0.01,
+              normals: np.ndarray | None = None) -> Mesh:
+    """Mesh an organised point map: two triangles per 2x2 pixel quad whose four points are valid.
+
+    xyz : (H, W, 3) float mm (camera frame), NaN where missing.
+    valid : (H, W) bool, default: finite points.
+    max_jump : a quad is cut when its depths span more than ``max_jump`` times its nearest depth
+        (no triangles across depth discontinuities).
+    normals : optional (H, W, 3) normals of the grid (e.g. ``Scan.normals_map``) to use as vertex
+        normals; default: area-weighted from the triangles.
+
+    Vertices are the valid pixels used by a triangle, in raster order (``Mesh.pixel`` gives their
+    (row, col)); triangles face the camera.
+    """
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 3 or xyz.shape[2] != 3:
+        raise GBError(f"grid_mesh: expected an organised (H, W, 3) point map, got {xyz.shape}")
+    H, W = xyz.shape[:2]
+    z = (xyz[..., 0] + xyz[..., 1] + xyz[..., 2]) * 0 + xyz[..., 2]  # NaN unless all three finite
+    z = z.astype(np.float32)
+    if valid is not None:
+        z[~valid] = np.nan
+    a, b, c, d = z[:-1, :-1], z[1:, :-1], z[:-1, 1:], z[1:, 1:]  # a=(v,u) b=(v+1,u) c=(v,u+1) d=(v+1,u+1)
+    with np.errstate(invalid="ignore"):
+        zmin = np.minimum(np.minimum(a, b), np.minimum(c, d))  # NaN if any is NaN
+        zmax = np.maximum(np.maximum(a, b), np.maximum(c, d))
+        quad = zmax - zmin <= np.float32(max_jump) * zmin  # False where NaN
+    used = np.zeros((H, W), bool)
+    used[:-1, :-1] |= quad
+    used[1:, :-1] |= quad
+    used[:-1, 1:] |= quad
+    used[1:, 1:] |= quad
+    rows, cols = np.nonzero(used)
+    index = np.full((H, W), -1, np.int64)
+    index[rows, cols] = np.arange(rows.size)
+    qv, qu = np.nonzero(quad)
+    ia, ib = index[qv, qu], index[qv + 1, qu]
+    ic, id_ = index[qv, qu + 1], index[qv + 1, qu + 1]
+    # (a, b, c): (+y) x (+x) = -z, i.e. facing the camera; (c, b, d) likewise.
+    tris = np.empty((2 * qv.size, 3), np.int64)
+    tris[0::2, 0], tris[0::2, 1], tris[0::2, 2] = ia, ib, ic
+    tris[1::2, 0], tris[1::2, 1], tris[1::2, 2] = ic, ib, id_
+    verts = xyz[rows, cols].astype(np.float64)
+    mesh = Mesh(verts, tris, pixel=np.stack([rows, cols], axis=1).astype(np.int32))
+    if normals is not None:
+        n = np.asarray(normals)[rows, cols].astype(np.float64)
+        if np.isfinite(n).all() and np.all(np.abs(n).sum(axis=1) > 0):
+            mesh.vertex_normals = n
+    if mesh.vertex_normals is None:
+        mesh.vertex_normals = vertex_normals(verts, tris)
+    return mesh
+
+
+def remove_unreferenced(mesh: Mesh) -> Mesh:
+    """Drop vertices used by no triangle (re-indexing the triangles)."""
+    used = np.zeros(mesh.n_vertices, bool)
+    used[mesh.triangles.ravel()] = True
+    if used.all():
+        return mesh
+    new = np.cumsum(used) - 1
+    return Mesh(mesh.vertices[used], new[mesh.triangles],
+                None if mesh.vertex_normals is None else mesh.vertex_normals[used],
+                None if mesh.pixel is None else mesh.pixel[used])
+
+
+def taubin_smooth(mesh: Mesh, iterations: int = 5, lam: float = 0.5, mu: float = -0.53) -> Mesh:
+    """Taubin's lambda|mu smoothing with the uniform (umbrella) Laplacian, in numpy.
+
+    Each iteration moves every vertex by ``lam`` times the mean of its neighbours minus itself,
+    then by ``mu`` (< -lam) times the same: noise is removed without the shrinkage of plain
+    Laplacian smoothing.  Returns a new mesh with recomputed normals.
+    """
+    if iterations <= 0 or mesh.n_triangles == 0:
+        return mesh
+    if not (0 < lam < -mu):
+        raise GBError(f"Taubin smoothing needs 0 < lam < -mu, got lam={lam}, mu={mu}")
+    from scipy import sparse
+
+    t = mesh.triangles
+    V = mesh.n_vertices
+    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    A = sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(V, V)).tocsr()
+    A = ((A + A.T) > 0).astype(np.float64)  # symmetric 0/1 adjacency
+    deg = np.asarray(A.sum(axis=1)).ravel()
+    inv = np.divide(1.0, deg, out=np.zeros(V), where=deg > 0)
+    has = (deg > 0)[:, None]
+    v = mesh.vertices.copy()
+    for _ in range(int(iterations)):
+        for f in (lam, mu):
+            lap = (A @ v) * inv[:, None] - v
+            v += f * np.where(has, lap, 0.0)
+    return Mesh(v, t.copy(), vertex_normals(v, t), None if mesh.pixel is None else mesh.pixel.copy())
+
+
+def poisson_mesh(points: np.ndarray, normals: np.ndarray, *, depth: int = 9, density_quantile: float = 0.05,
+                 crop_margin: float = 0.02) -> Mesh:
+    """Screened Poisson surface (open3d) of an oriented cloud, trimmed to where data was.
+
+    points, normals : (N, 3) mm and unit normals (oriented, e.g. towards the camera).
+    depth : octree depth (9 -> ~512 cells across the cloud; each +1 doubles the resolution).
+    density_quantile : vertices whose Poisson density (points supporting them) is in this lowest
+        fraction are removed -- Poisson closes the surface far from the data; this cuts it back.
+    crop_margin : also remove vertices outside the cloud's bounding box grown by this fraction.
+    """
+    import open3d as o3d
+
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    if len(points) < 10:
+        raise GBError(f"Poisson meshing needs at least 10 points, got {len(points)}")
+    if not 1 <= int(depth) <= 14:
+        raise GBError(f"Poisson depth must be between 1 and 14, got {depth}")
+    good = np.isfinite(points).all(1) & np.isfinite(normals).all(1) & (np.linalg.norm(normals, axis=1) > 0)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[good]))
+    pcd.normals = o3d.utility.Vector3dVector(normals[good])
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        m, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=int(depth))
+    dens = np.asarray(dens)
+    v = np.asarray(m.vertices)
+    lo, hi = points[good].min(0), points[good].max(0)
+    margin = crop_margin * (hi - lo)
+    keep = np.all((v >= lo - margin) & (v <= hi + margin), axis=1)
+    if density_quantile > 0 and dens.size:
+        keep &= dens >= np.quantile(dens, density_quantile)
+    m.remove_vertices_by_mask(~keep)
+    m.remove_unreferenced_vertices()
+    out = Mesh(np.asarray(m.vertices).copy(), np.asarray(m.triangles).copy())
+    out.vertex_normals = vertex_normals(out.vertices, out.triangles)
+    return out
+
+
+# -- point clouds on disk ----------------------------------------------------------------------
+@dataclass(eq=False)
+class Cloud:
+    """A point cloud read from disk: points (N, 3) mm, normals (N, 3) or None, confidence (N,)
+    or None, pixel (N, 2) int (row, col) or None, grid_size (width, height) or None."""
+
+    points: np.ndarray
+    normals: np.ndarray | None = None
+    confidence: np.ndarray | None = None
+    pixel: np.ndarray | None = None
+    grid_size: tuple[int, int] | None = None
+
+    @property
+    def organised(self) -> bool:
+        return self.pixel is not None and self.grid_size is not None
+
+    def grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """The organised map: xyz (H, W, 3) float64 with NaN holes and valid (H, W) bool."""
+        if not self.organised:
+            raise GBError("this cloud carries no pixel grid (row/col); mesh it with --method poisson")
+        W, H = self.grid_size
+        r, c = self.pixel[:, 0], self.pixel[:, 1]
+        if r.size and (r.min() < 0 or c.min() < 0 or r.max() >= H or c.max() >= W):
+            raise GBError(f"cloud pixel rows/cols fall outside its {W}x{H} grid")
+        xyz = np.full((H, W, 3), np.nan)
+        xyz[r, c] = self.points
+        return xyz, np.isfinite(xyz).all(-1)
+
+    def normal_grid(self) -> np.ndarray | None:
+        """(H, W, 3) normals on the pixel grid (NaN where no point), or None without normals."""
+        if self.normals is None or not self.organised:
+            return None
+        W, H = self.grid_size
+        n = np.full((H, W, 3), np.nan)
+        n[self.pixel[:, 0], self.pixel[:, 1]] = self.normals
+        return n
+
+
+def write_cloud_ply(path, points: np.ndarray, normals: np.ndarray | None = None, *,
+                    confidence: np.ndarray | None = None, pixel: np.ndarray | None = None,
+                    grid_size: tuple[int, int] | None = None) -> Path:
+    """Write a binary PLY point cloud atomically (see the module docstring for the layout).
+
+    points (N, 3) mm; normals (N, 3); confidence (N,); pixel (N, 2) (row, col); grid_size (W, H).
+    """
+    points = np.asarray(points).reshape(-1, 3)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if normals is not None:
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    if confidence is not None:
+        fields += [("confidence", "<f4")]
+    if pixel is not None:
+        fields += [("row", "<i4"), ("col", "<i4")]
+    rec = np.empty(len(points), dtype=np.dtype(fields))
+    rec["x"], rec["y"], rec["z"] = points[:, 0], points[:, 1], points[:, 2]
+    if normals is not None:
+        normals = np.nan_to_num(np.asarray(normals).reshape(-1, 3))
+        rec["nx"], rec["ny"], rec["nz"] = normals[:, 0], normals[:, 1], normals[:, 2]
+    if confidence is not None:
+        rec["confidence"] = np.asarray(confidence).ravel()
+    if pixel is not None:
+        pixel = np.asarray(pixel).reshape(-1, 2)
+        rec["row"], rec["col"] = pixel[:, 0], pixel[:, 1]
+    comments = ["gbscan point cloud, camera frame (x right, y down, z forward), mm"]
+    if pixel is not None and grid_size is not None:
+        comments.append(f"gbscan_grid {int(grid_size[0])} {int(grid_size[1])}")
+    return _write_ply(path, rec, None, comments)
+
+
+def read_cloud_ply(path) -> Cloud:
+    """Read the vertices of a PLY file (binary or ASCII) into a :class:`Cloud`.
+
+    Reads ``x y z`` and, when present, ``nx ny nz``, ``confidence``, ``row col`` and the
+    ``gbscan_grid`` comment.  GBError naming the file if it is not a readable PLY point cloud.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise GBError(f"point cloud {path} does not exist")
+    try:
+        header, elements, data_start, fmt = _parse_ply_header(path)
+    except (ValueError, UnicodeDecodeError, IndexError) as e:
+        raise GBError(f"point cloud {path} is not a valid PLY file ({e})") from None
+    grid = None
+    for line in header:
+        parts = line.split()
+        if len(parts) == 4 and parts[0] in ("comment", "obj_info") and parts[1] == "gbscan_grid":
+            grid = (int(parts[2]), int(parts[3]))
+    if not elements or elements[0][0] != "vertex":
+        raise GBError(f"point cloud {path}: the first PLY element must be 'vertex'")
+    _, count, props = elements[0]
+    names = [p[0] for p in props]
+    if any(p[1] == "list" for p in props):
+        raise GBError(f"point cloud {path}: list properties on vertices are not supported")
+    for need in ("x", "y", "z"):
+        if need not in names:
+            raise GBError(f"point cloud {path}: vertices have no '{need}' property")
+    try:
+        if fmt == "ascii":
+            with open(path, "rb") as fh:
+                fh.seek(data_start)
+                arr = np.loadtxt(fh, max_rows=count, ndmin=2, dtype=np.float64)
+            if arr.shape != (count, len(names)):
+                raise ValueError(f"expected {count} rows of {len(names)} numbers")
+            rec = {n: arr[:, k] for k, n in enumerate(names)}
+        else:
+            end = "<" if fmt == "binary_little_endian" else ">"
+            dt = np.dtype([(n, end + _PLY_TYPES[t]) for n, t in props])
+            raw = np.fromfile(path, dtype=dt, count=count, offset=data_start)
+            if raw.size != count:
+                raise ValueError(f"file ends after {raw.size} of {count} vertices")
+            rec = {n: raw[n] for n in names}
+    except (ValueError, KeyError) as e:
+        raise GBError(f"point cloud {path}: cannot read vertex data ({e}); is the file complete?") from None
+    pts = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)
+    nrm = (np.stack([rec["nx"], rec["ny"], rec["nz"]], axis=1).astype(np.float64)
+           if all(k in rec for k in ("nx", "ny", "nz")) else None)
+    conf = rec["confidence"].astype(np.float32) if "confidence" in rec else None
+    pix = (np.stack([rec["row"], rec["col"]], axis=1).astype(np.int64)
+           if "row" in rec and "col" in rec else None)
+    return Cloud(pts, nrm, conf, pix, grid if pix is not None else None)
+
+
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def _parse_ply_header(path: Path):
+    with open(path, "rb") as fh:
+        first = fh.readline()
+        if first.strip() != b"ply":
+            raise ValueError("missing 'ply' magic line")
+        header, elements, fmt = [], [], None
+        while True:
+            line = fh.readline()
+            if not line:
+                raise ValueError("no end_header")
+            text = line.decode("ascii").strip()
+            header.append(text)
+            parts = text.split()
+            if not parts:
+                continue
+            if parts[0] == "format":
+                fmt = parts[1]
+                if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+                    raise ValueError(f"unknown format {fmt}")
+            elif parts[0] == "element":
+                elements.append((parts[1], int(parts[2]), []))
+            elif parts[0] == "property":
+                if parts[1] == "list":
+                    elements[-1][2].append((parts[-1], "list"))
+                else:
+                    if parts[1] not in _PLY_TYPES:
+                        raise ValueError(f"unknown property type {parts[1]}")
+                    elements[-1][2].append((parts[2], parts[1]))
+            elif parts[0] == "end_header":
+                return header, elements, fh.tell(), fmt
+
+
+def _write_ply(path, vertex_rec: np.ndarray, faces: np.ndarray | None, comments: list[str]) -> Path:
+    inv = {"<f4": "float", "<i4": "int", "<u1": "uchar", "<f8": "double"}
+    lines = ["ply", "format binary_little_endian 1.0"]
+    lines += [f"comment {c}" for c in comments]
+    lines.append(f"element vertex {len(vertex_rec)}")
+    for name in vertex_rec.dtype.names:
+        lines.append(f"property {inv[vertex_rec.dtype[name].str]} {name}")
+    if faces is not None:
+        lines.append(f"element face {len(faces)}")
+        lines.append("property list uchar int vertex_indices")
+    lines.append("end_header")
+    with atomic_path(path, suffix=".ply") as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(("\n".join(lines) + "\n").encode("ascii"))
+            fh.write(vertex_rec.tobytes())
+            if faces is not None:
+                frec = np.empty(len(faces), dtype=np.dtype([("n", "u1"), ("v", "<i4", (3,))]))
+                frec["n"] = 3
+                frec["v"] = faces
+                fh.write(frec.tobytes())
+    return Path(path)
+
+
+# -- meshes on disk ----------------------------------------------------------------------------
+def write_mesh(path, mesh: Mesh) -> Path:
+    """Write ``mesh`` as .ply (binary, vertex normals), .obj (vertex normals) or .stl (binary,
+    triangle normals), chosen by the suffix; atomically."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise GBError(f"cannot write mesh {path}: the name must end in {', '.join(MESH_SUFFIXES)}")
+    if mesh.n_triangles == 0:
+        raise GBError(f"not writing {path}: the mesh has no triangles")
+    v = mesh.vertices
+    n = np.nan_to_num(mesh.normals())
+    if suffix == ".ply":
+        rec = np.empty(len(v), dtype=np.dtype([(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz")]))
+        rec["x"], rec["y"], rec["z"] = v[:, 0], v[:, 1], v[:, 2]
+        rec["nx"], rec["ny"], rec["nz"] = n[:, 0], n[:, 1], n[:, 2]
+        return _write_ply(path, rec, mesh.triangles, ["gbscan mesh, camera frame, mm"])
+    if suffix == ".obj":
+        with atomic_path(path, suffix=".obj") as tmp:
+            with open(tmp, "w", encoding="ascii") as fh:
+                fh.write("# gbscan mesh, camera frame (x right, y down, z forward), mm\n")
+                fh.write(("v %.4f %.4f %.4f\n" * len(v)) % tuple(v.ravel()))
+                fh.write(("vn %.5f %.5f %.5f\n" * len(n)) % tuple(n.ravel()))
+                t = np.repeat(mesh.triangles + 1, 2, axis=1)  # 1-based, v//vn share the index
+                fh.write(("f %d//%d %d//%d %d//%d\n" * len(t)) % tuple(t.ravel()))
+        return path
+    # .stl
+    tn = triangle_normals(v, mesh.triangles)
+    rec = np.zeros(mesh.n_triangles, dtype=np.dtype([("n", "<f4", (3,)), ("v", "<f4", (3, 3)), ("a", "<u2")]))
+    rec["n"] = tn
+    rec["v"] = v[mesh.triangles]
+    with atomic_path(path, suffix=".stl") as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(b"gbscan mesh, camera frame, mm".ljust(80, b" "))
+            fh.write(np.uint32(mesh.n_triangles).tobytes())
+            fh.write(rec.tobytes())
+    return path
+
+
+def read_mesh(path) -> Mesh:
+    """Read a mesh file with open3d (any format it knows); GBError if unreadable or empty."""
+    import open3d as o3d
+
+    path = Path(path)
+    if not path.is_file():
+        raise GBError(f"mesh {path} does not exist")
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        m = o3d.io.read_triangle_mesh(str(path))
+    if len(m.triangles) == 0:
+        raise GBError(f"mesh {path} could not be read or has no triangles")
+    return Mesh.from_open3d(m)

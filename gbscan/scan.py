@@ -1,0 +1,262 @@
+"""The scanning API: load a calibration once, turn camera frames into clean range images.
+
+```python
+from gbscan.scan import Scanner
+scanner = Scanner("calib.yaml")               # or a Calibration; precomputes rays and planes
+scan = scanner.scan(image_rgb)                # (H, W, 3) uint8 RGB -> Scan
+scan.points, scan.normals                     # (N, 3) mm camera frame, unit normals to camera
+scan.xyz                                      # (H, W, 3) float32 mm, NaN where no point
+scan.counts                                   # points removed per cleaning filter
+scan.to_open3d(); scan.mesh("grid")           # open3d PointCloud / TriangleMesh
+```
+
+Pipeline per frame: :func:`gbscan.decode.decode` (continuous projector column per pixel) ->
+:func:`gbscan.triangulate.triangulate` (rays x light planes, exact cross-ratio interpolation) ->
+:func:`gbscan.clean.clean` (filters with per-pixel reasons) -> grid normals.  When the projector
+columns come from elsewhere (ground truth, another decoder), :meth:`Scanner.reconstruct` runs
+the same pipeline from them.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .calibfile import Calibration, load_calibration
+from .clean import CODE, REASONS, CleanParams, clean, grid_normals
+from .errors import GBError
+from .pattern import PatternSpec
+
+
+@dataclass(eq=False)
+class Scan:
+    """One reconstructed frame (H, W = camera image size; camera frame, mm).
+
+    xyz : (H, W, 3) float32 points, NaN where no point survived.
+    normals_map : (H, W, 3) float32 unit normals towards the camera, NaN where no point.
+    confidence : (H, W) float32 decoder confidence in [0, 1] (1 for external columns without one).
+    reason : (H, W) uint8 code of why a pixel has no point, 0 = kept (``gbscan.clean.REASONS``).
+    counts : points removed per step, in order (``not_decoded``, ``no_plane``, filters...),
+        plus ``pixels`` and ``kept``.
+    timings_ms : milliseconds per stage (decode, triangulate, clean, normals, total).
+    stripe : (H, W) int32 absolute stripe index from the decoder (-1 none) or None.
+    stripemap : the decoder's :class:`gbscan.decode.StripeMap` or None.
+    """
+
+    xyz: np.ndarray
+    normals_map: np.ndarray
+    confidence: np.ndarray
+    reason: np.ndarray
+    counts: dict = field(default_factory=dict)
+    timings_ms: dict = field(default_factory=dict)
+    stripe: np.ndarray | None = None
+    stripemap: object = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.reason.shape
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(H, W) bool: pixels with a point."""
+        return self.reason == 0
+
+    @property
+    def points(self) -> np.ndarray:
+        """(N, 3) float32 mm, the valid pixels in raster order."""
+        return self.xyz[self.valid]
+
+    @property
+    def normals(self) -> np.ndarray:
+        """(N, 3) float32 unit normals of :attr:`points` (towards the camera)."""
+        return self.normals_map[self.valid]
+
+    @property
+    def pixel(self) -> np.ndarray:
+        """(N, 2) int32 camera pixel (row, col) of each point."""
+        return np.argwhere(self.valid).astype(np.int32)
+
+    @property
+    def point_confidence(self) -> np.ndarray:
+        return self.confidence[self.valid]
+
+    @property
+    def masks(self) -> dict[str, np.ndarray]:
+        """{reason name: (H, W) bool} for every reason that occurs, ``ok`` = kept."""
+        codes = np.unique(self.reason)
+        return {REASONS[int(c)]: self.reason == c for c in codes}
+
+    @property
+    def n_points(self) -> int:
+        return int(self.valid.sum())
+
+    @property
+    def coverage(self) -> float:
+        """Fraction of the image's pixels that have a point."""
+        return self.n_points / self.reason.size
+
+    def to_open3d(self):
+        """``open3d.geometry.PointCloud`` with normals."""
+        import open3d as o3d
+
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points.astype(np.float64)))
+        pc.normals = o3d.utility.Vector3dVector(np.nan_to_num(self.normals.astype(np.float64)))
+        return pc
+
+    def mesh_arrays(self, method: str = "grid", *, max_jump: float = 0.01, depth: int = 9,
+                    density_quantile: float = 0.05, smooth: int = 0):
+        """A :class:`gbscan.mesh.Mesh` (numpy arrays) of this scan.
+
+        method : "grid" (organised-grid triangulation, fast, default) or "poisson" (open3d).
+        smooth : Taubin smoothing iterations applied afterwards.
+        """
+        from . import mesh as gm
+
+        if self.n_points == 0:
+            raise GBError("cannot mesh a scan with no points")
+        if method == "grid":
+            m = gm.grid_mesh(self.xyz, self.valid, max_jump=max_jump, normals=self.normals_map)
+        elif method == "poisson":
+            m = gm.poisson_mesh(self.points, self.normals, depth=depth, density_quantile=density_quantile)
+        else:
+            raise GBError(f"mesh method must be 'grid' or 'poisson', got {method!r}")
+        return gm.taubin_smooth(m, smooth) if smooth else m
+
+    def mesh(self, method: str = "grid", **options):
+        """``open3d.geometry.TriangleMesh`` of this scan (options as :meth:`mesh_arrays`)."""
+        return self.mesh_arrays(method, **options).to_open3d()
+
+    def save_ply(self, path) -> Path:
+        """Write the cloud as an organised binary PLY (see :mod:`gbscan.mesh`)."""
+        from .mesh import write_cloud_ply
+
+        H, W = self.shape
+        return write_cloud_ply(path, self.points, self.normals, confidence=self.point_confidence,
+                               pixel=self.pixel, grid_size=(W, H))
+
+    def summary(self) -> str:
+        """Human-readable lines: removals per step, points, coverage, timings."""
+        c = self.counts
+        removed = [f"{k} {v}" for k, v in c.items() if k not in ("pixels", "input", "kept")]
+        lines = [f"pixels {c.get('pixels', self.reason.size)}, removed: " + ", ".join(removed),
+                 f"points {self.n_points} (coverage {100 * self.coverage:.1f}% of the image)"]
+        if self.timings_ms:
+            lines.append("time " + ", ".join(f"{k} {v:.1f} ms" for k, v in self.timings_ms.items()))
+        return "\n".join(lines)
+
+
+class Scanner:
+    """Scans frames with one calibration.  Construction precomputes the pixel rays (through the
+    camera model, distortion included) and the plane table; :meth:`scan` is then cheap.
+
+    calibration : a :class:`gbscan.calibfile.Calibration` or the path of a calibration file.
+    pattern : the projected pattern; default the calibration's (or ``PatternSpec()`` if the file
+        records none).  Must match the calibration's pattern when both are known.
+    decode_params : :class:`gbscan.decode.DecodeParams` (default: its defaults).
+    clean_params : :class:`gbscan.clean.CleanParams` (default: its defaults).
+    min_angle_deg : rays closer than this to a light plane give no point.
+    """
+
+    def __init__(self, calibration: Calibration | str | Path, *, pattern: PatternSpec | None = None,
+                 decode_params=None, clean_params: CleanParams | None = None, min_angle_deg: float = 2.0):
+        from .triangulate import PlaneTable, pixel_rays
+
+        if isinstance(calibration, (str, Path)):
+            calibration = load_calibration(calibration)
+        if not isinstance(calibration, Calibration):
+            raise GBError("Scanner: calibration must be a Calibration or a file path, "
+                          f"got {type(calibration).__name__}")
+        if calibration.n_planes < 2:
+            raise GBError(f"the calibration has {calibration.n_planes} light planes; scanning needs at least 2 "
+                          "(calibrate the projector with 'gbcal calibrate SESSION')")
+        if pattern is not None and calibration.pattern is not None and pattern != calibration.pattern:
+            raise GBError(f"pattern {pattern} differs from the calibration's {calibration.pattern}; "
+                          "scan with the pattern the rig was calibrated with")
+        self.calibration = calibration
+        self.pattern = pattern or calibration.pattern or PatternSpec()
+        self.decode_params = decode_params
+        self.clean_params = clean_params or CleanParams()
+        if not isinstance(self.clean_params, CleanParams):
+            raise GBError("Scanner: clean_params must be a gbscan.clean.CleanParams")
+        self.min_angle_deg = float(min_angle_deg)
+        self.camera = calibration.camera
+        self.rays = pixel_rays(self.camera)  # (H, W, 3) float64 unit rays, distortion inverted
+        self.planes = PlaneTable.from_calibration(calibration)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) of the frames this scanner accepts."""
+        return self.camera.size
+
+    def scan(self, image_rgb: np.ndarray, *, clean: bool = True, keep_stages: bool = False) -> Scan:
+        """Decode, triangulate, clean one camera frame (H, W, 3) uint8 RGB -> :class:`Scan`."""
+        from .decode import DecodeParams, decode
+
+        image_rgb = np.asarray(image_rgb)
+        W, H = self.size
+        if image_rgb.ndim != 3 or image_rgb.shape[:2] != (H, W):
+            raise GBError(f"image is {'x'.join(map(str, image_rgb.shape[1::-1]))} but the calibration's camera "
+                          f"is {W}x{H}; scan images from the calibrated camera")
+        t0 = time.perf_counter()
+        sm = decode(image_rgb, self.pattern, self.decode_params or DecodeParams(), keep_stages=keep_stages)
+        t_dec = (time.perf_counter() - t0) * 1e3
+        s = self.reconstruct(sm.column, sm.confidence, decoded=sm.valid, clean=clean)
+        s.stripe, s.stripemap = sm.stripe, sm
+        s.timings_ms = {"decode": t_dec, **s.timings_ms}
+        s.timings_ms["total"] = t_dec + s.timings_ms.get("total", 0.0)
+        return s
+
+    def reconstruct(self, column: np.ndarray, confidence: np.ndarray | None = None, *,
+                    decoded: np.ndarray | None = None, clean: bool = True) -> Scan:
+        """Triangulate and clean from projector columns (H, W) px (NaN = none).
+
+        confidence : (H, W) in [0, 1] or None (all 1: no confidence filtering).
+        decoded : (H, W) bool pixels the decoder reported (default: finite column); the others
+            are counted as ``not_decoded``.
+        """
+        from .triangulate import triangulate
+
+        W, H = self.size
+        column = np.asarray(column)
+        if column.shape != (H, W):
+            raise GBError(f"column map is {column.shape[::-1]} but the camera is {W}x{H}")
+        t0 = time.perf_counter()
+        finite = np.isfinite(column)
+        if decoded is None:
+            decoded = finite
+        decoded = decoded & finite
+        conf = (np.ones((H, W), np.float32) if confidence is None
+                else np.where(decoded, np.asarray(confidence, np.float32), 0).astype(np.float32))
+        xyz = np.empty((H, W, 3), np.float32)
+        triangulate(self.rays, np.where(decoded, column, np.nan), self.planes,
+                    min_angle_deg=self.min_angle_deg, out=xyz)
+        t1 = time.perf_counter()
+        reason = np.where(decoded, 0, CODE["not_decoded"]).astype(np.uint8)
+        counts = {"pixels": H * W, "not_decoded": int((~decoded).sum())}
+        normals = None
+        if clean:
+            res = _clean(xyz, conf if confidence is not None else None, self.clean_params, reason)
+            reason = res.reason
+            counts.update({k: v for k, v in res.counts.items() if k != "input"})
+            normals = res.normals  # computed before the last filter, which removes whole small pieces
+        else:
+            bad = (reason == 0) & ~np.isfinite(xyz).all(-1)
+            reason[bad] = CODE["no_plane"]
+            counts["no_plane"] = int(bad.sum())
+            counts["kept"] = int((reason == 0).sum())
+        valid = reason == 0
+        xyz[~valid] = np.nan
+        t2 = time.perf_counter()
+        if normals is None:
+            normals = grid_normals(xyz, valid, self.clean_params.normal_step_px)
+        normals[~valid] = np.nan
+        t3 = time.perf_counter()
+        timings = {"triangulate": (t1 - t0) * 1e3, "clean": (t2 - t1) * 1e3, "normals": (t3 - t2) * 1e3,
+                   "total": (t3 - t0) * 1e3}
+        return Scan(xyz, normals, conf, reason, counts, timings)
+
+
+def _clean(xyz, confidence, params, reason):
+    return clean(xyz, confidence, params, reason=reason)

@@ -1,0 +1,166 @@
+"""Speed and memory of the single-shot decoder, with peers on equivalent frames.
+
+    python scripts/bench_decode.py [--runs N] [--threads 1]
+
+Renders a plane at 650 mm once per size (640x480 with the paper's rig; 1280x1024 with the same
+lens scaled, supersample 1 to keep rendering short), then prints the median milliseconds per
+decoder stage and in total over N runs, and peak memory (tracemalloc: numpy buffers; OpenCV's
+own buffers are not traced).  Peers on the same sizes:
+
+* OpenCV FTP (``cv2.structured_light.SinusoidalPattern``, methodId FTP): ``computePhaseMap`` on
+  the three frames it requires (shadow mask) + ``unwrapPhaseMap``;
+* a per-pixel Gray-code decode in numpy (10 bit images + white + black, threshold at the
+  white/black midpoint, Gray -> binary by cumulative XOR) on frames made from the true columns.
+
+Threads are limited to one (``cv2.setNumThreads``, ``numba.set_num_threads``) for the
+single-core figures.  The first decode compiles/loads the numba kernels and is not timed.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import tracemalloc
+from dataclasses import replace
+
+import numpy as np
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def frames(width: int):
+    from gbscan import sim
+    from gbscan.camera import Camera
+    from gbscan.pattern import PatternSpec, render_pattern
+    from gbscan.rig import Rig
+
+    rig = sim.paper_rig()
+    cond = sim.preset("typical")
+    if width != 640:
+        s = width / 640.0
+        cam = rig.camera
+        big = Camera(width, int(round(width * 1024 / 1280)),
+                     np.array([[800 * s, 0, (width - 1) / 2], [0, 800 * s, (width * 0.8 - 1) / 2], [0, 0, 1]]),
+                     cam.dist)
+        rig = Rig(big, rig.projector, rig.R_cam_proj, rig.t_cam_proj)
+        cond = replace(cond, supersample=1)
+    log(f"rendering {rig.camera.width}x{rig.camera.height} ...")
+    r = sim.render(rig, sim.scenes.plane(distance_mm=650), render_pattern(PatternSpec()), cond, seed=0)
+    return r
+
+
+def median_ms(f, runs: int) -> tuple[float, object]:
+    out = f()
+    ts = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        out = f()
+        ts.append((time.perf_counter() - t) * 1e3)
+    return float(np.median(ts)), out
+
+
+def peak_mb(f) -> float:
+    tracemalloc.start()
+    f()
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    return peak / 2 ** 20
+
+
+def gray_frames(column: np.ndarray, n_bits: int = 10, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    col = np.nan_to_num(column, nan=-1).astype(np.int64)
+    lit = col >= 0
+    gray = np.where(lit, col ^ (col >> 1), 0)
+    imgs = []
+    for b in range(n_bits - 1, -1, -1):
+        bit = (gray >> b) & 1
+        imgs.append(np.clip(30 + 170 * bit * lit + rng.normal(0, 2, col.shape), 0, 255).astype(np.uint8))
+    white = np.clip(30 + 170 * lit + rng.normal(0, 2, col.shape), 0, 255).astype(np.uint8)
+    black = np.clip(30 + rng.normal(0, 2, col.shape), 0, 255).astype(np.uint8)
+    return imgs, white, black
+
+
+def gray_decode(imgs, white, black):
+    mid = (white.astype(np.int16) + black) // 2
+    valid = (white.astype(np.int16) - black) > 20
+    code = np.zeros(white.shape, np.int32)
+    acc = np.zeros(white.shape, np.int32)
+    for im in imgs:  # Gray -> binary: b_i = b_{i-1} xor g_i
+        g = (im > mid).astype(np.int32)
+        acc ^= g
+        code = (code << 1) | acc
+    return np.where(valid, code, -1)
+
+
+def ftp_peer(image_rgb: np.ndarray):
+    import cv2
+
+    sl = cv2.structured_light
+    H, W = image_rgb.shape[:2]
+    p = sl.SinusoidalPattern.Params()
+    p.width, p.height = W, H
+    p.nbrOfPeriods = max(8, W // 16)
+    p.methodId = sl.FTP
+    p.setMarkers = False
+    p.horizontal = False
+    s = sl.SinusoidalPattern.create(p)
+    ok, pats = s.generate()
+    caps = [np.ascontiguousarray(x) for x in pats]  # equivalent frames: FTP needs three (shadow mask)
+
+    def run():
+        w, sh = s.computePhaseMap(caps)
+        return s.unwrapPhaseMap(w, (W, H), shadowMask=sh)
+
+    return run
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", type=int, default=15)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--sizes", default="640,1280")
+    args = ap.parse_args(argv)
+
+    import cv2
+    import numba
+
+    from gbscan.decode import decode
+    from gbscan.pattern import PatternSpec
+
+    cv2.setNumThreads(args.threads)
+    numba.set_num_threads(max(1, min(args.threads, numba.config.NUMBA_NUM_THREADS)))
+    spec = PatternSpec()
+    print(f"# decoder benchmark, {args.threads} thread(s), median of {args.runs} runs (ms)")
+    for w in (int(x) for x in args.sizes.split(",")):
+        r = frames(w)
+        img = r.image
+        H, W = img.shape[:2]
+        log("warming up (numba kernels) ...")
+        decode(img, spec)
+        stage_runs = []
+        for _ in range(args.runs):
+            stage_runs.append(decode(img, spec).stats["ms"])
+        total, sm = median_ms(lambda: decode(img, spec), args.runs)
+        stages = {k: float(np.median([s[k] for s in stage_runs])) for k in stage_runs[0]}
+        mem = peak_mb(lambda: decode(img, spec))
+        print(f"\n## {W}x{H}: gbscan decode  total {total:.2f} ms  (target {'3' if W <= 640 else '12'} ms)  "
+              f"peak numpy memory {mem:.1f} MB, reported {sm.valid.mean() * 100:.1f}% of pixels")
+        print("   stages: " + "  ".join(f"{k} {v:.2f}" for k, v in stages.items() if k != "total"))
+        ftp = ftp_peer(img)
+        t_ftp, _ = median_ms(ftp, max(3, args.runs // 3))
+        m_ftp = peak_mb(ftp)
+        print(f"   peer OpenCV FTP (computePhaseMap + unwrapPhaseMap): {t_ftp:.2f} ms, peak numpy memory "
+              f"{m_ftp:.1f} MB (buffers inside OpenCV not traced)")
+        imgs, white, black = gray_frames(r.proj_xy[..., 0])
+        t_gc, code = median_ms(lambda: gray_decode(imgs, white, black), args.runs)
+        m_gc = peak_mb(lambda: gray_decode(imgs, white, black))
+        print(f"   peer Gray code (10 bits + white + black, numpy): {t_gc:.2f} ms, peak memory {m_gc:.1f} MB "
+              f"(needs 12 frames instead of 1)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,132 @@
+#!/usr/bin/env python
+"""Speed of the scan pipeline: decode, triangulate, clean (+ normals), grid mesh, and the whole
+``gbscan scan`` command as a user runs it.
+
+    python scripts/bench_scan.py [--scene plane|sphere|head] [--repeats 7] [--sizes 640x480 1280x1024]
+
+Frames come from the simulated rig (typical preset) with its exact calibration; the 1280x1024
+camera has the same horizontal field of view as the paper's 640x480 one.  Prints the median
+milliseconds per stage per frame size, then the wall time of the command in a fresh process
+(Python start-up and imports included), without and with --mesh.  Numbers depend on the machine
+and on its load: run it on a quiet machine.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def rig_of_size(width: int, height: int):
+    from gbscan.camera import Camera
+    from gbscan.rig import Rig, paper_rig
+
+    base = paper_rig()
+    s = width / base.camera.width
+    K = base.camera.K.copy()
+    K[0, 0] *= s
+    K[1, 1] *= s
+    K[0, 2] = (width - 1) / 2
+    K[1, 2] = (height - 1) / 2
+    cam = Camera(width, height, K, base.camera.dist)
+    return Rig(cam, base.projector, base.R_cam_proj, base.t_cam_proj)
+
+
+def scene_of(name: str):
+    from gbscan import sim
+
+    return {"plane": lambda: sim.scenes.plane(650.0, tilt_deg=(0.0, 20.0)),
+            "sphere": lambda: sim.scenes.sphere(),
+            "head": lambda: sim.scenes.head()}[name]()
+
+
+def median_ms(fn, repeats: int) -> float:
+    ts = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        ts.append((time.perf_counter() - t) * 1e3)
+    return statistics.median(ts)
+
+
+def bench_size(width: int, height: int, scene: str, repeats: int, workdir: Path) -> dict:
+    from gbscan import sim
+    from gbscan.calibfile import calibration_from_rig, save_calibration
+    from gbscan.clean import clean, grid_normals
+    from gbscan.decode import DecodeParams, decode
+    from gbscan.io import write_png
+    from gbscan.mesh import grid_mesh
+    from gbscan.pattern import PatternSpec, render_pattern
+    from gbscan.scan import Scanner
+    from gbscan.triangulate import triangulate
+
+    spec = PatternSpec()
+    rig = rig_of_size(width, height)
+    print(f"[{width}x{height}] rendering the {scene} scene ...", file=sys.stderr, flush=True)
+    r = sim.render(rig, scene_of(scene), render_pattern(spec), sim.preset("typical"), seed=0)
+    calib = calibration_from_rig(rig, spec)
+    scanner = Scanner(calib)
+    params = DecodeParams()
+    sm = decode(r.image, spec, params)  # warm-up (numba compilation)
+    xyz = np.empty((height, width, 3), np.float32)
+    col = np.where(sm.valid, sm.column, np.nan)
+    triangulate(scanner.rays, col, scanner.planes, out=xyz)
+    res = clean(xyz, sm.confidence, scanner.clean_params)
+    scan = scanner.scan(r.image)
+    print(f"[{width}x{height}] timing ({repeats} repeats) ...", file=sys.stderr, flush=True)
+    out = {
+        "points": scan.n_points,
+        "decode": median_ms(lambda: decode(r.image, spec, params), repeats),
+        "triangulate": median_ms(lambda: triangulate(scanner.rays, col, scanner.planes, out=xyz), repeats),
+        "clean": median_ms(lambda: clean(xyz, sm.confidence, scanner.clean_params), repeats),
+        "normals": median_ms(lambda: grid_normals(xyz, res.kept, 2), repeats),
+        "mesh": median_ms(lambda: grid_mesh(scan.xyz, scan.valid, normals=scan.normals_map), repeats),
+        "scan()": median_ms(lambda: scanner.scan(r.image), repeats),
+    }
+    out["scan()+mesh"] = out["scan()"] + out["mesh"]
+    img = write_png(workdir / f"frame_{width}x{height}.png", r.image)
+    cal = save_calibration(workdir / f"calib_{width}x{height}.yaml", calib)
+    base = [sys.executable, "-m", "gbscan.cli", "scan", str(img), "--calib", str(cal),
+            "-o", str(workdir / "cloud.ply")]
+    for label, extra in (("command", []), ("command --mesh", ["--mesh", str(workdir / "mesh.ply")])):
+        ts = []
+        for _ in range(max(3, repeats // 2)):
+            t = time.perf_counter()
+            p = subprocess.run(base + extra, capture_output=True, text=True)
+            ts.append((time.perf_counter() - t) * 1e3)
+            if p.returncode != 0:
+                raise SystemExit(f"gbscan scan failed: {p.stderr.strip()}")
+        out[label] = statistics.median(ts)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", choices=("plane", "sphere", "head"), default="plane")
+    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--sizes", nargs="+", default=["640x480", "1280x1024"])
+    args = ap.parse_args(argv)
+    sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes]
+    rows = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for w, h in sizes:
+            rows[f"{w}x{h}"] = bench_size(w, h, args.scene, args.repeats, Path(tmp))
+    keys = ["points", "decode", "triangulate", "clean", "normals", "mesh", "scan()", "scan()+mesh",
+            "command", "command --mesh"]
+    print(f"median ms per frame, scene '{args.scene}', typical preset ({args.repeats} repeats)")
+    print(f"{'stage':<16}" + "".join(f"{k:>14}" for k in rows))
+    for k in keys:
+        vals = [rows[s][k] for s in rows]
+        print(f"{k:<16}" + "".join(f"{v:>14.0f}" if k == "points" else f"{v:>14.1f}" for v in vals))
+    print("decode+triangulate: " + ", ".join(f"{s} {r['decode'] + r['triangulate']:.1f} ms" for s, r in rows.items()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

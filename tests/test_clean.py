@@ -1,0 +1,191 @@
+"""Cleaning filters on analytic scenes with noise and planted outliers (known ground truth)."""
+import numpy as np
+import pytest
+from test_triangulate import pixel_rays, tilted_plane, truth
+
+from gbscan.calibfile import calibration_from_rig
+from gbscan.clean import (CODE, CleanParams, clean, cluster_filter, confidence_filter, depth_range_filter,
+                          discontinuity_filter, grazing_filter, grid_normals, outlier_filter)
+from gbscan.errors import GBError
+from gbscan.pattern import PatternSpec
+from gbscan.rig import paper_rig
+from gbscan.triangulate import PlaneTable, triangulate
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Sphere (r 90 mm at 600 mm) before a tilted wall at ~800 mm, decoded with column noise."""
+    rig = paper_rig()
+    calib = calibration_from_rig(rig, PatternSpec())
+    p, col, oid = truth(rig, spheres=[((20.0, -10.0, 600.0), 90.0)], planes=[tilted_plane(800.0, (0.2, 0.1, -1.0))])
+    rng = np.random.default_rng(1)
+    noisy = col + rng.normal(0, 0.05, col.shape)  # projector px: ~0.06 mm depth noise at 650 mm
+    xyz = triangulate(pixel_rays(rig.camera), noisy, PlaneTable.from_calibration(calib))
+    return rig, p, xyz, oid
+
+
+def depth_edges(p, ratio=0.02, width=2):
+    """True depth discontinuities / silhouettes, dilated by ``width`` px."""
+    import cv2
+
+    z = p[..., 2]
+    fin = np.isfinite(z)
+    e = np.zeros(z.shape, bool)
+    with np.errstate(invalid="ignore"):
+        for a, b, sa, sb in (((slice(None), slice(1, None)), (slice(None), slice(None, -1)), 1, 1),
+                             ((slice(1, None), slice(None)), (slice(None, -1), slice(None)), 1, 1)):
+            j = (np.abs(z[a] - z[b]) > ratio * np.fmin(z[a], z[b])) | (fin[a] != fin[b])
+            e[a] |= j
+            e[b] |= j
+    return cv2.dilate(e.view(np.uint8), np.ones((2 * width + 1, 2 * width + 1), np.uint8)).astype(bool)
+
+
+def true_angle_deg(p, centre, oid, wall_n):
+    """Angle between viewing ray and true normal of the analytic scene."""
+    n = np.where((oid == 0)[..., None], p - centre, -wall_n)
+    n = n / np.linalg.norm(n, axis=-1, keepdims=True)
+    r = p / np.linalg.norm(p, axis=-1, keepdims=True)
+    return np.degrees(np.arccos(np.clip(-(n * r).sum(-1), -1, 1)))
+
+
+def plant(xyz, p, rng):
+    """Spikes, flying pixels at depth edges, a detached cluster: returns (corrupted xyz, planted mask)."""
+    out = xyz.copy()
+    valid = np.isfinite(xyz[..., 2])
+    planted = np.zeros(valid.shape, bool)
+    # 1. random spikes: 0.5% of points moved 4-60 mm along their ray
+    idx = np.flatnonzero(valid)
+    spikes = rng.choice(idx, size=idx.size // 200, replace=False)
+    scale = 1 + rng.choice([-1, 1], spikes.size) * rng.uniform(0.006, 0.09, spikes.size)
+    out.reshape(-1, 3)[spikes] *= scale[:, None]
+    planted.flat[spikes] = True
+    # 2. flying pixels: the background pixel right of each foreground->background edge becomes a blend
+    z = np.where(valid, xyz[..., 2], np.nan)
+    with np.errstate(invalid="ignore"):
+        edge = (z[:, 1:] - z[:, :-1]) > 0.05 * z[:, :-1]  # pixel u+1 is background, u foreground
+    vv, uu = np.nonzero(edge)
+    a = rng.uniform(0.2, 0.8, vv.size)
+    zf, zb = z[vv, uu], z[vv, uu + 1]
+    out[vv, uu + 1] *= ((a * zf + (1 - a) * zb) / zb)[:, None]
+    planted[vv, uu + 1] = True
+    # 3. a detached 10x10 cluster 80 mm in front of the wall
+    v0 = int(np.flatnonzero(valid.any(1))[0]) + 15
+    u0 = int(np.flatnonzero(valid[v0])[0]) + 20
+    assert valid[v0:v0 + 10, u0:u0 + 10].all()
+    blk = out[v0:v0 + 10, u0:u0 + 10]
+    blk *= ((blk[..., 2] - 80.0) / blk[..., 2])[..., None]
+    planted[v0:v0 + 10, u0:u0 + 10] = True
+    return out, planted & valid, (spikes.size, vv.size, 100)
+
+
+def test_cleaning_removes_planted_outliers_and_keeps_good_points(scene):
+    rig, p, xyz, oid = scene
+    rng = np.random.default_rng(7)
+    bad_xyz, planted, (n_spikes, n_flying, n_cluster) = plant(xyz, p, rng)
+    assert n_spikes > 500 and n_flying > 100
+    params = CleanParams()
+    res = clean(bad_xyz, None, params)
+    kept = res.kept
+    angle = true_angle_deg(p, np.array([20.0, -10.0, 600.0]), oid, tilted_plane(800.0, (0.2, 0.1, -1.0))[0])
+    good = np.isfinite(xyz[..., 2]) & ~planted & ~depth_edges(p) & (angle < params.max_angle_deg - 5)
+    removed_planted = 1 - (kept & planted).sum() / planted.sum()
+    kept_good = (kept & good).sum() / good.sum()
+    err = np.linalg.norm(bad_xyz[kept] - p[kept], axis=1)
+    print(f"planted {planted.sum()}: removed {100 * removed_planted:.2f}%; good kept {100 * kept_good:.3f}%; "
+          f"max error kept {err.max():.2f} mm; counts {res.counts}")
+    assert removed_planted >= 0.99
+    assert kept_good >= 0.995
+    assert err.max() < 3.0
+    assert sum(v for k, v in res.counts.items() if k not in ("input", "kept")) == (~kept).sum()
+    assert res.counts["kept"] == kept.sum()
+    assert set(np.unique(res.reason)) <= set(CODE.values())
+
+
+def test_clean_data_loses_almost_nothing_but_edges(scene):
+    _, p, xyz, _ = scene
+    res = clean(xyz, None, CleanParams())
+    inner = np.isfinite(xyz[..., 2]) & ~depth_edges(p)
+    assert (res.kept & inner).sum() / inner.sum() > 0.99
+
+
+def test_confidence_and_depth_range():
+    xyz = np.zeros((4, 5, 3))
+    xyz[..., 2] = np.linspace(100, 900, 20).reshape(4, 5)
+    valid = np.ones((4, 5), bool)
+    conf = np.linspace(0, 1, 20).reshape(4, 5)
+    kept, name = confidence_filter(conf, valid, 0.5)
+    assert name == "low_confidence" and kept.sum() == 10
+    kept, name = depth_range_filter(xyz, valid, 300.0, 600.0)
+    z = xyz[..., 2]
+    assert name == "depth_range" and np.array_equal(kept, (z >= 300) & (z <= 600))
+
+
+def test_discontinuity_cuts_both_sides_of_a_step_only():
+    z = np.full((20, 30), 600.0)
+    z[:, 15:] = 660.0
+    xyz = np.stack([np.zeros_like(z), np.zeros_like(z), z], -1)
+    kept, _ = discontinuity_filter(xyz, np.ones(z.shape, bool), 0.01)
+    assert np.array_equal(np.nonzero(~kept.all(0))[0], [14, 15])
+    xyz[:, 15:, 2] = 603.0  # 0.5% step: not a discontinuity at 1%
+    kept, _ = discontinuity_filter(xyz, np.ones(z.shape, bool), 0.01)
+    assert kept.all()
+
+
+def test_outlier_filter_keeps_steep_smooth_surfaces_and_drops_spikes(scene):
+    rig, _, _, _ = scene
+    rays = pixel_rays(rig.camera)
+    n, d = tilted_plane(650.0, (np.tan(np.radians(75)), 0.0, -1.0))  # 75 degrees steep
+    s = d / (rays @ n)
+    ang = np.degrees(np.arccos(np.abs(rays @ n)))
+    valid = (s > 0) & (ang < 85)
+    xyz = np.where(valid[..., None], rays * s[..., None], np.nan)
+    assert valid.mean() > 0.3 and np.nanmax(ang[valid]) > 80
+    kept, _ = outlier_filter(xyz, valid, 0.002, 1)
+    inner = valid.copy()  # away from the region's border (its corners have no complete pair)
+    inner[1:-1, 1:-1] = valid[:-2, 1:-1] & valid[2:, 1:-1] & valid[1:-1, :-2] & valid[1:-1, 2:] & valid[1:-1, 1:-1]
+    inner[:, [0, -1]] = inner[[0, -1], :] = False
+    assert kept[inner].all()
+    xyz[100, 100] *= 1.006
+    kept, _ = outlier_filter(xyz, valid, 0.002, 1)
+    assert not kept[100, 100] and kept[99:102, 99:102].sum() == 8
+
+
+def test_grid_normals_and_grazing(scene):
+    rig, _, _, _ = scene
+    rays = pixel_rays(rig.camera)
+    for tilt in (0.0, 40.0, 70.0):
+        n_true, d = tilted_plane(650.0, (np.sin(np.radians(tilt)), 0.0, -np.cos(np.radians(tilt))))
+        s = d / (rays @ n_true)
+        seen = (s > 0) & (s < 5000)
+        xyz = np.where(seen[..., None], rays * s[..., None], np.nan)
+        n = grid_normals(xyz, seen, 2)
+        inner = seen.copy()
+        inner[:, :3] = inner[:, -3:] = False
+        inner[1:] &= inner[:-1].copy()
+        assert seen.mean() > 0.5
+        assert np.max(np.abs(n[inner] - n_true)) < 1e-4  # a plane: exact to float32, facing the camera
+        assert np.isfinite(n[seen]).all()  # one-sided differences at the border
+    # points on a plane tilted 70 deg from the optical axis are seen at 60-80 deg
+    kept, name = grazing_filter(xyz, seen, 75.0)
+    ang = np.degrees(np.arccos(-(rays @ n_true)))
+    near = np.abs(ang - 75.0) < 0.01  # float32 normals decide these either way
+    assert name == "grazing" and (ang[inner] > 75).any() and (ang[inner] < 75).any()
+    assert np.array_equal(kept[inner & ~near], (ang <= 75.0)[inner & ~near])
+
+
+def test_cluster_filter():
+    valid = np.zeros((50, 50), bool)
+    valid[5:30, 5:30] = True
+    valid[40:45, 40:45] = True
+    valid[40:42, 5:6] = True
+    kept, name = cluster_filter(valid, 30)
+    assert name == "small_cluster" and kept.sum() == 625 and kept[5:30, 5:30].all()
+
+
+def test_bad_params_raise():
+    for kw in ({"min_confidence": 2}, {"min_depth_mm": 500, "max_depth_mm": 100}, {"max_angle_deg": 0},
+               {"min_pairs": 5}, {"max_jump": 0}):
+        with pytest.raises(GBError, match="cleaning parameters"):
+            CleanParams(**kw)
+    with pytest.raises(GBError, match="organised"):
+        clean(np.zeros((10, 3)))

@@ -1,0 +1,159 @@
+"""Simulated calibration sessions: poses, layout round trip, ground truth, per-frame noise."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gbcal.patterns import calibration_frames, gray_decode, n_gray_bits
+from gbcal.simsession import _grid_projector_x, _pose_ok, board_poses, load_truth, write_session
+from gbscan import sim
+from gbscan.errors import GBError
+from gbscan.io import load_session, read_image_rgb
+from gbscan.pattern import PatternSpec
+from gbscan.rig import Rig
+
+SPEC = PatternSpec()
+
+
+@pytest.fixture(scope="module")
+def small_rig():
+    r = sim.paper_rig()
+    return Rig(r.camera.scaled(0.5), r.projector, r.R_cam_proj, r.t_cam_proj)
+
+
+@pytest.fixture(scope="module")
+def session(small_rig, tmp_path_factory):
+    out = tmp_path_factory.mktemp("sess") / "s"
+    write_session(out, small_rig, SPEC, board=(7, 5, 25.0), n_poses=2, preset="typical", seed=3, progress=False)
+    return out
+
+
+def test_board_poses_are_varied_valid_and_deterministic():
+    rig = sim.paper_rig()
+    b = (9, 7, 20.0)
+    poses = board_poses(rig, b, 12, seed=0)
+    assert len(poses) == 12
+    tilts = [np.degrees(np.arccos(R[2, 2])) for R, _ in poses]
+    assert max(tilts) > 30 and min(tilts) < 10
+    centres = np.array([R @ [80.0, 60.0, 0.0] + t for R, t in poses])
+    assert np.ptp(centres[:, 2]) > 120 and 500 < centres[:, 2].min() and centres[:, 2].max() < 850
+    assert np.ptp(centres[:, 0] / centres[:, 2]) > 0.1 and np.ptp(centres[:, 1] / centres[:, 2]) > 0.1
+    for R, t in poses:
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        assert _pose_ok(rig, R, t, *b, b[2])
+    # together the boards cross every light plane: projector columns from near 0 to near 1023
+    cov = [_grid_projector_x(rig, R, t, *b) for R, t in poses]
+    assert min(c[0] for c in cov) < 30 and max(c[1] for c in cov) > 1023 - 30
+    again = board_poses(rig, b, 12, seed=0)
+    assert all(np.array_equal(R1, R2) and np.array_equal(t1, t2) for (R1, t1), (R2, t2) in zip(poses, again))
+    with pytest.raises(GBError, match="smaller board"):
+        board_poses(rig, (9, 7, 60.0), 2, seed=0)
+
+
+def test_session_round_trip(session, small_rig):
+    s = load_session(session)
+    assert (s.board_cols, s.board_rows, s.square_mm) == (7, 5, 25.0)
+    assert s.camera_size == small_rig.camera.size and s.projector_size == (1024, 768)
+    assert list(s.frames) == list(calibration_frames(SPEC)) and len(s.poses) == 2
+    for k in range(2):
+        for name in s.frames:
+            img = read_image_rgb(s.frame_path(k, name), size=s.camera_size)
+            assert img.dtype == np.uint8
+    tr = load_truth(session)
+    assert tr["board"] == (7, 5, 25.0) and tr["pattern"] == SPEC and len(tr["poses"]) == 2
+    np.testing.assert_allclose(tr["camera"].K, small_rig.camera.K)
+    np.testing.assert_allclose(tr["camera"].dist, small_rig.camera.dist)
+    np.testing.assert_allclose(tr["rig"].t_cam_proj, small_rig.t_cam_proj)
+    np.testing.assert_allclose(tr["rig"].R_cam_proj, small_rig.R_cam_proj)
+    assert tr["conditions"] == sim.preset("typical")
+
+
+def test_frames_carry_their_own_noise(session):
+    s = load_session(session)
+    black = read_image_rgb(s.frame_path(0, "black")).astype(int)
+    # where gray_00 is dark too (most of the unlit background), the images must still differ
+    g = read_image_rgb(s.frame_path(0, "gray_00")).astype(int)
+    g_inv = read_image_rgb(s.frame_path(0, "gray_00_inv")).astype(int)
+    dark = (g.max(-1) < 12) & (g_inv.max(-1) < 12) & (black.max(-1) < 12)
+    assert dark.sum() > 5000
+    assert np.mean(black[dark] != g[dark]) > 0.2
+
+
+def test_gray_code_frames_match_the_true_stripe(session):
+    """Decode the Gray code at lit board pixels; it must equal the stripe of the true projector column."""
+    s = load_session(session)
+    tr = load_truth(session)
+    cols, rows, sq = tr["board"]
+    R, t = tr["poses"][1]
+    truth = sim.trace(tr["rig"], sim.scenes.board(cols, rows, sq, R, t), sim.preset("clean"))
+    nb = n_gray_bits(SPEC)
+    bits = []
+    for b in range(nb):
+        a = read_image_rgb(s.frame_path(1, f"gray_{b:02d}")).astype(int).sum(-1)
+        c = read_image_rgb(s.frame_path(1, f"gray_{b:02d}_inv")).astype(int).sum(-1)
+        bits.append(a > c)
+    code = np.zeros(bits[0].shape, np.int64)
+    for bit in bits:
+        code = (code << 1) | bit
+    stripe = gray_decode(code)
+    x = truth.proj_xy[..., 0].astype(np.float64)
+    frac = np.mod(x + 0.5, SPEC.stripe_px)
+    white = read_image_rgb(s.frame_path(1, "white")).astype(int).sum(-1)
+    ok = truth.lit & ~truth.depth_edge & (frac > 2) & (frac < SPEC.stripe_px - 2)
+    ok &= white > 3 * 100  # white squares (the black ones return too little light to read bits reliably)
+    assert ok.sum() > 1000
+    assert np.mean(stripe[ok] == SPEC.stripe_of_column(x[ok])) > 0.99
+
+
+def test_white_frame_shows_the_board_where_the_truth_says(session):
+    import cv2
+
+    s = load_session(session)
+    tr = load_truth(session)
+    cols, rows, sq = tr["board"]
+    R, t = tr["poses"][0]
+    grey = cv2.cvtColor(read_image_rgb(s.frame_path(0, "white")), cv2.COLOR_RGB2GRAY)
+    found, corners = cv2.findChessboardCornersSB(grey, (cols, rows))
+    assert found
+    truth = tr["camera"].project(sim.scenes.board_corners(cols, rows, sq) @ R.T + t)
+    got = corners.reshape(-1, 2)
+    if np.linalg.norm(got[0] - truth[0]) > np.linalg.norm(got[0] - truth[-1]):
+        got = got[::-1]
+    assert np.median(np.linalg.norm(got - truth, axis=1)) < 0.2
+
+
+def test_write_session_rejects_bad_input(small_rig, tmp_path):
+    with pytest.raises(GBError, match="projector"):
+        write_session(tmp_path / "x", small_rig, PatternSpec(800, 600), n_poses=1, progress=False)
+    with pytest.raises(GBError, match="board"):
+        write_session(tmp_path / "x", small_rig, SPEC, board=(2, 5, 20.0), n_poses=1, progress=False)
+    with pytest.raises(GBError, match="preset"):
+        write_session(tmp_path / "x", small_rig, SPEC, n_poses=1, preset="sunny", progress=False)
+    with pytest.raises(GBError, match="truth"):
+        load_truth(tmp_path)
+
+
+@pytest.mark.slow
+def test_cli_simulate_session(tmp_path, capsys):
+    from gbcal.cli import main
+
+    out = tmp_path / "sess"
+    assert main(["simulate-session", str(out), "--poses", "1", "--preset", "clean", "--quiet"]) == 0
+    s = load_session(out)
+    assert len(s.poses) == 1 and s.camera_size == (640, 480)
+    assert "truth.yaml" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:
+        main(["simulate-session", str(tmp_path / "b"), "--board", "9by7"])
+    assert e.value.code == 2
+
+
+def test_cli_simulate(tmp_path):
+    from gbscan.cli import main
+
+    png = tmp_path / "step.png"
+    assert main(["simulate", "step", "-o", str(png), "--truth", str(tmp_path / "t.npz"), "--preset", "clean"]) == 0
+    img = read_image_rgb(png, size=(640, 480))
+    t = np.load(tmp_path / "t.npz")
+    assert t["point"].shape == (480, 640, 3) and t["lit"].dtype == bool
+    np.testing.assert_array_equal(t["image"], img)
+    assert main(["simulate", "plane", "-o", str(tmp_path / "a.png"), "--truth", str(tmp_path / "t.txt")]) == 1
