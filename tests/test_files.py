@@ -27,6 +27,15 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
     assert target.read_text() == "old"
 
 
+def test_atomic_write_respects_umask(tmp_path):
+    old = os.umask(0o022)
+    try:
+        save_yaml(tmp_path / "x.yaml", {"a": 1})
+    finally:
+        os.umask(old)
+    assert (tmp_path / "x.yaml").stat().st_mode & 0o777 == 0o644
+
+
 def test_atomic_write_names_missing_folder(tmp_path):
     with pytest.raises(GBError, match="does not exist"):
         save_yaml(tmp_path / "nope" / "x.yaml", {"a": 1})
