@@ -91,7 +91,7 @@ def _read(session: Session, pose: int, name: str) -> np.ndarray:
 
 
 def calibrate_session(session_dir, *, model: str = "k1k2p1p2", loss: str = "soft_l1", f_scale_px: float = 0.5,
-                      stripe_weight: float = 1.0, max_samples_per_capture: int = 6000,
+                      stripe_weight: float = 1.0, max_samples_per_capture: int = 20000,
                       min_captures: int = MIN_CAPTURES, log=None, seed: int = 0) -> CalibrationRun:
     """Calibrate the rig from a capture session folder (module docstring).
 

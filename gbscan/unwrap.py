@@ -344,12 +344,19 @@ def split_doubtful(labels: np.ndarray, segs: Segments, believable: np.ndarray, p
                                 segs.j_ub, doubtful)
     if not cut.any():
         return segs
+    return _apply_cuts(segs, cut)
+
+
+
+def _apply_cuts(segs: Segments, cut: np.ndarray) -> Segments:
+    """Split segments at the transitions flagged in ``cut`` (one kernel, shared by the cutters)."""
+    from . import kernels
+
     (seg, row, u0, u1, j0, j1, par, j_seg, j_ua, j_ub, j_la, j_lb, j_idx) = kernels.apply_cuts(
         segs.seg, segs.row, segs.u0, segs.u1, segs.j0, segs.j1, segs.parity, segs.j_seg, segs.j_ua, segs.j_ub,
         segs.j_la, segs.j_lb, cut)
     return Segments(seg, segs.rel, row, u0, u1, j0, j1, par, j_seg, j_ua, j_ub, j_la, j_lb, segs.j_rel[j_idx],
                     None if segs.j_x is None else segs.j_x[j_idx])
-
 
 def cut_depth_edges(segs: Segments, ratio: float) -> Segments:
     """Step 1 (geometry check of the transitions): cut segments where the boundary spacing jumps.
@@ -366,11 +373,7 @@ def cut_depth_edges(segs: Segments, ratio: float) -> Segments:
     cut = kernels.spacing_cuts(segs.j_x.astype(np.float64), segs.j0, segs.j1, float(ratio))
     if not cut.any():
         return segs
-    (seg, row, u0, u1, j0, j1, par, j_seg, j_ua, j_ub, j_la, j_lb, j_idx) = kernels.apply_cuts(
-        segs.seg, segs.row, segs.u0, segs.u1, segs.j0, segs.j1, segs.parity, segs.j_seg, segs.j_ua, segs.j_ub,
-        segs.j_la, segs.j_lb, cut)
-    return Segments(seg, segs.rel, row, u0, u1, j0, j1, par, j_seg, j_ua, j_ub, j_la, j_lb, segs.j_rel[j_idx],
-                    segs.j_x[j_idx])
+    return _apply_cuts(segs, cut)
 
 
 def attach_doubtful(segs: Segments, edges: Edges, believable: np.ndarray, state, p: UnwrapParams):

@@ -28,7 +28,7 @@ def main(argv=None) -> int:
     p.add_argument("--poses", type=int, default=12)
     p.add_argument("--preset", default="typical")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--max-samples", type=int, default=6000)
+    p.add_argument("--max-samples", type=int, default=20000)
     args = p.parse_args(argv)
 
     from gbcal.calibrate import calibrate_session

@@ -41,10 +41,14 @@ stamp="$venv/.gbscan-installed"
 want="$(cat "$root/pyproject.toml" | sha256sum | cut -c1-16)"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   say "installing gbscan and its dependencies into .venv (first time: a few minutes)"
-  "$venv/bin/python" -m pip install -q --disable-pip-version-check --upgrade pip 2>&1 | grep -v -i warning >&2 || true
-  "$venv/bin/python" -m pip install -q --disable-pip-version-check -e "$root[test,batch]" 2>&1 | grep -v -i warning >&2 || true
-  "$venv/bin/python" -c "import numpy, scipy, cv2, open3d, yaml, numba, gbscan, gbcal" \
-    || { say "installation failed (see the messages above)"; exit 1; }
+  log="$venv/pip-install.log"
+  if ! { "$venv/bin/python" -m pip install -q --disable-pip-version-check --upgrade pip &&
+         "$venv/bin/python" -m pip install -q --disable-pip-version-check -e "$root[test,batch]"; } >"$log" 2>&1 ||
+     ! "$venv/bin/python" -c "import numpy, scipy, cv2, open3d, yaml, numba, gbscan, gbcal" >>"$log" 2>&1; then
+    tail -n 30 "$log" >&2
+    say "installation failed; the full log is $log"
+    exit 1
+  fi
   echo "$want" > "$stamp"
 fi
 export PATH="$venv/bin:$PATH"

@@ -24,8 +24,8 @@ def add_arguments(p):
                    help="residual (camera px) where the robust loss starts to down-weight (default 0.5)")
     p.add_argument("--stripe-weight", type=float, default=1.0,
                    help="weight of a stripe-boundary sample relative to a corner coordinate (default 1)")
-    p.add_argument("--max-samples", type=int, default=6000,
-                   help="stripe-boundary samples used per capture, drawn at random (default 6000; fewer is "
+    p.add_argument("--max-samples", type=int, default=20000,
+                   help="stripe-boundary samples used per capture, drawn at random (default 20000; fewer is "
                         "faster, more pins the principal point and the planes down better)")
 
 

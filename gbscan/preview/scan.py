@@ -154,13 +154,18 @@ def save_depth_picture(path, xyz: np.ndarray, title: str = "depth (mm)") -> Path
         ax.set_title(f"{title}: {int(finite.sum())} points")
         ax.set_axis_off()
         fig.colorbar(im, ax=ax, fraction=0.04, pad=0.02, label="z (mm)")
-        fig.tight_layout()
-        with atomic_path(path, suffix=".png") as tmp:
-            fig.savefig(tmp, format="png")
+        _save_figure(fig, path)
     finally:
         plt.close(fig)
     return Path(path)
 
+
+
+def _save_figure(fig, path) -> None:
+    """Lay out and write a matplotlib figure as PNG, atomically."""
+    fig.tight_layout()
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, format="png")
 
 def save_coverage_picture(path, reason: np.ndarray) -> Path:
     """Pixels coloured by why they have (green) or have no point, with a legend of counts."""
@@ -181,9 +186,7 @@ def save_coverage_picture(path, reason: np.ndarray) -> Path:
         handles = [Patch(color=np.array(REASON_RGB[REASONS[int(c)]]) / 255,
                          label=f"{REASONS[int(c)]} {int(k)}") for c, k in zip(codes, n)]
         ax.legend(handles=handles, loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8, frameon=False)
-        fig.tight_layout()
-        with atomic_path(path, suffix=".png") as tmp:
-            fig.savefig(tmp, format="png")
+        _save_figure(fig, path)
     finally:
         plt.close(fig)
     return Path(path)
