@@ -302,7 +302,13 @@ def test_dask_cluster_with_a_killer_frame(tmp_path, dask_cluster):
     rows = read_manifest(out / "manifest.csv")
     assert (s.ok, s.failed) == (4, 2)
     pids = log.read_text().split()
-    assert len(set(pids)) == len(pids) <= 4  # once per worker process (2 + restarts after the kills)
+    # Setup runs once per worker process, never per frame: every pid appears once.  Dask retries a
+    # task that killed its worker up to `allowed-failures` times, so the killer frame may take out
+    # that many + 1 workers, each replaced by a fresh process that sets up once.
+    import dask
+
+    kills = int(dask.config.get("distributed.scheduler.allowed-failures")) + 1
+    assert len(set(pids)) == len(pids) <= 2 + kills
     assert rows[2]["status"] == "failed" and "KilledWorker" in rows[2]["reason"]
     assert "no stripes" in rows[3]["reason"]
     for i in (0, 1, 4, 5):
