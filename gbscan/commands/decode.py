@@ -63,7 +63,9 @@ def summary(sm) -> str:
                  f"{st.get('boundaries', 0)} stripe boundaries. ")
     if "why" in st:
         text += st["why"] + ". "
-    text += f"Decoded in {st['ms'].get('total', float('nan')):.1f} ms."
+    total_ms = st.get("ms", {}).get("total")
+    if total_ms is not None:
+        text += f"Decoded in {total_ms:.1f} ms."
     return text
 
 
