@@ -21,6 +21,17 @@ NONE, GREEN, BLUE, CYAN = 0, 1, 2, 3
 
 
 @njit(cache=True, nogil=True)
+def _merge_runs(rs, re, rl, k, nr):
+    """Merge runs k-1, k, k+1 of a row into run k-1 (in place); returns the new run count."""
+    re[k - 1] = re[k + 1]
+    for m in range(k + 2, nr):
+        rs[m - 2] = rs[m]
+        re[m - 2] = re[m]
+        rl[m - 2] = rl[m]
+    return nr - 2
+
+
+@njit(cache=True, nogil=True)
 def row_segments(labels, max_gap_px, spike_px):
     """Paper step 1 kernel: unroll each row by the transitions along it.
 
@@ -78,13 +89,7 @@ def row_segments(labels, max_gap_px, spike_px):
             while k < nr - 1:
                 if (rl[k] != NONE and rl[k - 1] != NONE and rl[k - 1] == rl[k + 1]
                         and re[k] - rs[k] + 1 <= spike_px and re[k - 1] + 1 == rs[k] and re[k] + 1 == rs[k + 1]):
-                    # merge k-1, k, k+1
-                    re[k - 1] = re[k + 1]
-                    for m in range(k + 2, nr):
-                        rs[m - 2] = rs[m]
-                        re[m - 2] = re[m]
-                        rl[m - 2] = rl[m]
-                    nr -= 2
+                    nr = _merge_runs(rs, re, rl, k, nr)  # merge k-1, k, k+1
                 else:
                     k += 1
         # -- small gaps: equal colours across a small gap -> one run; else keep the gap as a gap
@@ -93,12 +98,7 @@ def row_segments(labels, max_gap_px, spike_px):
             while k < nr - 1:
                 if (rl[k] == NONE and re[k] - rs[k] + 1 <= max_gap_px and rl[k - 1] != NONE
                         and rl[k - 1] == rl[k + 1]):
-                    re[k - 1] = re[k + 1]
-                    for m in range(k + 2, nr):
-                        rs[m - 2] = rs[m]
-                        re[m - 2] = re[m]
-                        rl[m - 2] = rl[m]
-                    nr -= 2
+                    nr = _merge_runs(rs, re, rl, k, nr)
                 else:
                     k += 1
         # -- walk runs into segments
