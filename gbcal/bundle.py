@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gbscan.camera import Camera, distort_normalized
+from gbscan.camera import Camera, distort_normalized, undistort_normalized
 from gbscan.errors import GBError
 from gbscan.rig import Projector, Rig
 
@@ -237,7 +237,7 @@ class BundleProblem:
             target = np.stack([(uv[:, 0] - cx - self.skew * yd) / fx, yd], axis=1)
             dist = self.dist0.copy()
             dist[self.free_dist] = theta[4:self.n_cam]
-            xn = undistort_newton(target, dist, x0[:, :2], iterations=2)
+            xn = undistort_normalized(target, dist, x0[:, :2], iterations=2, tol=None)
         return np.concatenate([xn, np.ones((xn.shape[0], 1))], axis=1)
 
     def rays(self, theta) -> np.ndarray:
@@ -373,28 +373,6 @@ def _blas_threads(n: int = 1):
     finally:
         for put, old in handles:
             put(old)
-
-
-def undistort_newton(target: np.ndarray, dist: np.ndarray, x0: np.ndarray, iterations: int = 2) -> np.ndarray:
-    """Undistorted normalised coordinates (N, 2) of distorted ones ``target`` (N, 2) by Newton's
-    method with the analytic 2x2 Jacobian of :func:`gbscan.camera.distort_normalized`, from a
-    close start ``x0`` (N, 2) (quadratic convergence: 2 steps reach ~1e-15 from 1e-7)."""
-    k1, k2, p1, p2, k3 = (float(v) for v in dist)
-    x = np.array(x0, np.float64)
-    for _ in range(iterations):
-        u, v = x[:, 0], x[:, 1]
-        r2 = u * u + v * v
-        rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-        fu = u * rad + 2.0 * p1 * u * v + p2 * (r2 + 2.0 * u * u) - target[:, 0]
-        fv = v * rad + p1 * (r2 + 2.0 * v * v) + 2.0 * p2 * u * v - target[:, 1]
-        a = rad + 2.0 * u * u * drad + 2.0 * p1 * v + 6.0 * p2 * u
-        b = 2.0 * u * v * drad + 2.0 * p1 * u + 2.0 * p2 * v
-        d = rad + 2.0 * v * v * drad + 6.0 * p1 * v + 2.0 * p2 * u
-        det = a * d - b * b
-        x[:, 0] = u - (d * fu - b * fv) / det
-        x[:, 1] = v - (-b * fu + a * fv) / det
-    return x
 
 
 def refine(data: BundleData, camera: Camera, rvecs: np.ndarray, tvecs: np.ndarray, rig: Rig, *,

@@ -74,11 +74,12 @@ class Camera:
         return np.stack([u, v], axis=-1)
 
     # -- backward model ------------------------------------------------------------------------
-    def normalize(self, q: np.ndarray, iterations: int = 20) -> np.ndarray:
+    def normalize(self, q: np.ndarray) -> np.ndarray:
         """Pixels (..., 2) -> undistorted normalised coordinates (..., 2) (rays ``[x, y, 1]``).
 
-        Inverts the distortion by fixed-point iteration followed by two Newton steps, which
-        reaches ~1e-12 on the distortions real lenses have.
+        Inverts the distortion by Newton's method (:func:`undistort_normalized`), which reaches
+        ~1e-13 in a few steps on the distortions real lenses have; where it has not converged
+        (extreme distortion far off-axis) a fixed-point warm start and Newton again.
         """
         q = np.asarray(q, dtype=np.float64)
         fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
@@ -88,20 +89,14 @@ class Camera:
         target = np.stack([xd, yd], axis=-1)
         if not np.any(self.dist):
             return target
-        x = target.copy()
-        for _ in range(iterations):
-            x = x + (target - self.distort(x))
-        for _ in range(2):  # Newton polish with a numeric 2x2 Jacobian
-            eps = 1e-7
-            f0 = self.distort(x) - target
-            jx = (self.distort(x + [eps, 0.0]) - self.distort(x - [eps, 0.0])) / (2 * eps)
-            jy = (self.distort(x + [0.0, eps]) - self.distort(x - [0.0, eps])) / (2 * eps)
-            a, b, c, d = jx[..., 0], jy[..., 0], jx[..., 1], jy[..., 1]
-            det = a * d - b * c
-            with np.errstate(divide="ignore", invalid="ignore"):
-                dx = (d * f0[..., 0] - b * f0[..., 1]) / det
-                dy = (-c * f0[..., 0] + a * f0[..., 1]) / det
-            x = x - np.stack([dx, dy], axis=-1)
+        x = undistort_normalized(target, self.dist)
+        bad = ~np.all(np.abs(self.distort(x) - target) < 1e-10, axis=-1)
+        if np.any(bad):
+            t = target[bad]
+            xb = t.copy()
+            for _ in range(20):
+                xb = xb + (t - self.distort(xb))
+            x[bad] = undistort_normalized(t, self.dist, xb)
         return x
 
     def rays(self, q: np.ndarray) -> np.ndarray:
@@ -140,3 +135,36 @@ def distort_normalized(xn: np.ndarray, dist: np.ndarray) -> np.ndarray:
     xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
     return np.stack([xd, yd], axis=-1)
+
+
+def undistort_normalized(xd: np.ndarray, dist: np.ndarray, x0: np.ndarray | None = None, *,
+                         iterations: int = 12, tol: float | None = 1e-13) -> np.ndarray:
+    """Invert :func:`distort_normalized`: distorted normalised (..., 2) -> undistorted (..., 2).
+
+    Newton's method with the analytic 2x2 Jacobian of OpenCV's model, from ``x0`` (default: the
+    distorted coordinates themselves).  Stops after ``iterations`` steps or once the residual is
+    below ``tol`` (``None``: always take every step).  Quadratic convergence: from a start 1e-7
+    away, two steps reach ~1e-15.
+    """
+    k1, k2, p1, p2, k3 = (float(v) for v in np.asarray(dist, dtype=np.float64).ravel()[:5])
+    t = np.asarray(xd, dtype=np.float64)
+    tx, ty = t[..., 0], t[..., 1]
+    start = t if x0 is None else np.asarray(x0, dtype=np.float64)
+    x, y = start[..., 0].copy(), start[..., 1].copy()
+    for _ in range(iterations):
+        xx, yy, xy = x * x, y * y, x * y
+        r2 = xx + yy
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dr = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+        fx = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx) - tx
+        fy = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy - ty
+        a = radial + 2.0 * xx * dr + 2.0 * p1 * y + 6.0 * p2 * x
+        b = 2.0 * xy * dr + 2.0 * p1 * x + 2.0 * p2 * y
+        d = radial + 2.0 * yy * dr + 6.0 * p1 * y + 2.0 * p2 * x
+        det = a * d - b * b
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = x - (d * fx - b * fy) / det
+            y = y - (a * fy - b * fx) / det
+        if tol is not None and (fx.size == 0 or max(np.abs(fx).max(), np.abs(fy).max()) < tol):
+            break
+    return np.stack([x, y], axis=-1)

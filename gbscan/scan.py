@@ -161,7 +161,7 @@ class Scanner:
 
     def __init__(self, calibration: Calibration | str | Path, *, pattern: PatternSpec | None = None,
                  decode_params=None, clean_params: CleanParams | None = None, min_angle_deg: float = 2.0):
-        from .triangulate import PlaneTable, pixel_rays
+        from .triangulate import PlaneTable
 
         if isinstance(calibration, (str, Path)):
             calibration = load_calibration(calibration)
@@ -182,7 +182,7 @@ class Scanner:
             raise GBError("Scanner: clean_params must be a gbscan.clean.CleanParams")
         self.min_angle_deg = float(min_angle_deg)
         self.camera = calibration.camera
-        self.rays = pixel_rays(self.camera)  # (H, W, 3) float64 unit rays, distortion inverted
+        self.rays = self.camera.pixel_rays()  # (H, W, 3) float64 unit rays, distortion inverted
         self.planes = PlaneTable.from_calibration(calibration)
 
     @property

@@ -1,7 +1,7 @@
 """Camera rays x projector light planes -> 3D points (camera frame, mm).
 
-Inputs per pixel: the unit ray of its centre through the camera model (:func:`pixel_rays`,
-the same as ``Camera.pixel_rays()`` but faster; computed once per calibration) and its
+Inputs per pixel: the unit ray of its centre through the camera model (``Camera.pixel_rays()``,
+computed once per calibration) and its
 continuous projector column (px, NaN where unknown) from the decoder.  The calibration gives
 light planes ``n . p = d`` only at the stripe boundaries' columns (``Calibration.plane_column``);
 a column in between needs the plane through that column.
@@ -99,53 +99,12 @@ class PlaneTable:
         return int(self.column.size)
 
 
-def pixel_rays(camera, *, tol: float = 1e-13, max_iter: int = 12) -> np.ndarray:
-    """(H, W, 3) float64 unit rays of every pixel centre -- :meth:`Camera.pixel_rays`, faster.
-
-    Inverts the distortion by Newton's method with the analytic 2x2 Jacobian of OpenCV's model,
-    on separate coordinate planes (a few iterations instead of Camera.normalize's twenty
-    fixed-point steps).  Falls back to ``camera.pixel_rays()`` if it has not converged to
-    ``tol`` (normalised units) after ``max_iter`` iterations.
-    """
-    K = camera.K
-    k1, k2, p1, p2, k3 = (float(v) for v in camera.dist)
-    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
-    ty = (v - K[1, 2]) / K[1, 1]
-    tx = (u - K[0, 2] - K[0, 1] * ty) / K[0, 0]
-    x, y = tx.copy(), ty.copy()
-    if any((k1, k2, p1, p2, k3)):
-        for _ in range(max_iter):
-            xx, yy, xy = x * x, y * y, x * y
-            r2 = xx + yy
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            dr = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-            fx = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx) - tx
-            fy = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy - ty
-            a = radial + 2.0 * xx * dr + 2.0 * p1 * y + 6.0 * p2 * x
-            b = 2.0 * xy * dr + 2.0 * p1 * x + 2.0 * p2 * y
-            d = radial + 2.0 * yy * dr + 6.0 * p1 * y + 2.0 * p2 * x
-            det = a * d - b * b
-            x -= (d * fx - b * fy) / det
-            y -= (a * fy - b * fx) / det
-            if max(np.abs(fx).max(), np.abs(fy).max()) < tol:
-                break
-        resid = camera.distort(np.stack([x, y], -1)) - np.stack([tx, ty], -1)
-        if not np.all(np.abs(resid) < 1e3 * tol):
-            return camera.pixel_rays()
-    r = np.empty((camera.height, camera.width, 3))
-    inv = 1.0 / np.sqrt(x * x + y * y + 1.0)
-    r[..., 0] = x * inv
-    r[..., 1] = y * inv
-    r[..., 2] = inv
-    return r
-
-
 def triangulate(rays: np.ndarray, column: np.ndarray, planes: PlaneTable, *,
                 min_angle_deg: float = 2.0, max_extrapolate_px: float | None = None,
                 out: np.ndarray | None = None, compiled: bool = True) -> np.ndarray:
     """Points where each pixel's ray meets the light plane of its projector column.
 
-    rays : (H, W, 3) or (N, 3) float unit ray directions (camera frame), e.g. :func:`pixel_rays`.
+    rays : (H, W, 3) or (N, 3) float unit ray directions (camera frame), e.g. ``Camera.pixel_rays()``.
     column : (H, W) or (N,) float continuous projector column (px); NaN = no measurement.
     planes : :class:`PlaneTable`.
     min_angle_deg : rays closer than this to a light plane give NaN (depth ill-conditioned).
