@@ -21,8 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gbscan.errors import GBError
-from gbscan.io import atomic_path, write_png, write_text_atomic
+from gbscan.io import atomic_path, make_dir, write_png, write_text_atomic
 
 
 def load_samples(calib_path, calib) -> tuple[dict | None, str]:
@@ -65,10 +64,7 @@ def write_report(calib_path, out_dir, *, grid: tuple[int, int] = (8, 6)) -> list
 
     calib = load_calibration(calib_path)
     out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise GBError(f"cannot create report folder {out}: {e.strerror}") from None
+    make_dir(out, "report folder")
     S, note = load_samples(calib_path, calib)
     res = calib.residuals or {}
     caps = res.get("captures") or []
@@ -217,10 +213,7 @@ def write_capture_previews(session_dir, run, out_dir) -> list[Path]:
 
     session = load_session(session_dir)
     out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise GBError(f"cannot create preview folder {out}: {e.strerror}") from None
+    make_dir(out, "preview folder")
     S = run.samples
     used_names = list(S["used_captures"])
     written = []

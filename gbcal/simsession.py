@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from gbscan.errors import GBError
-from gbscan.io import atomic_path, load_yaml, save_yaml, write_session_yaml
+from gbscan.io import atomic_path, load_yaml, make_dir, save_yaml, write_session_yaml
 from gbscan.pattern import PatternSpec
 from gbscan.rig import Rig
 
@@ -159,10 +159,7 @@ def write_session(out_dir, rig: Rig, pattern: PatternSpec, board=DEFAULT_BOARD, 
         raise GBError(f"pattern is {pattern.width}x{pattern.height} but the projector is "
                       f"{rig.projector.width}x{rig.projector.height}")
     cond = sim.preset(preset)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise GBError(f"cannot create session folder {out}: {e.strerror}") from None
+    make_dir(out, "session folder")
     frames = calibration_frames(pattern)
     poses = board_poses(rig, (cols, rows, s), n_poses, seed)
     t0 = time.time()

@@ -66,6 +66,16 @@ def _umask() -> int:
     return mask
 
 
+def make_dir(path, what: str = "output folder") -> Path:
+    """Create folder ``path`` (and parents) if missing; GBError "cannot create <what> <path>: why"."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise GBError(f"cannot create {what} {path}: {e.strerror}") from None
+    return path
+
+
 def write_bytes_atomic(path, data: bytes) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)

@@ -238,13 +238,10 @@ def capture_session(out_dir, projector, camera, keys, board, spec, *, n_poses: i
     Returns the number of poses captured."""
     from gbcal.board import detect, detect_with_reason
     from gbcal.patterns import calibration_frames
-    from gbscan.io import write_png, write_session_yaml
+    from gbscan.io import make_dir, write_png, write_session_yaml
 
     out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise GBError(f"cannot create session folder {out}: {e.strerror}") from None
+    make_dir(out, "session folder")
     if any(out.glob("pose_*")):
         raise GBError(f"session folder {out} already holds captures; choose a new folder")
     frames = calibration_frames(spec)

@@ -77,7 +77,7 @@ def run(args) -> int:
 
     from gbscan.calibfile import Calibration, save_calibration
     from gbscan.errors import GBError
-    from gbscan.io import read_image_gray, write_png
+    from gbscan.io import make_dir, read_image_gray, write_png
 
     from ..board import MAX_SHARPNESS_PX, detect_with_reason, draw_detection, parse_board
     from ..intrinsics import calibrate_camera
@@ -88,10 +88,7 @@ def run(args) -> int:
         raise GBError(f"cannot write {out}: folder {out.parent} does not exist (create it first)")
     preview = Path(args.preview) if args.preview else None
     if preview is not None:
-        try:
-            preview.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise GBError(f"cannot create preview folder {preview}: {e.strerror}") from None
+        make_dir(preview, "preview folder")
     paths = expand_images(args.images)
     max_blur = MAX_SHARPNESS_PX if args.max_blur_px is None else args.max_blur_px
 

@@ -21,18 +21,14 @@ def add_arguments(p):
 def run(args) -> int:
     from pathlib import Path
 
-    from gbscan.errors import GBError
-    from gbscan.io import save_yaml, write_png
+    from gbscan.io import make_dir, save_yaml, write_png
     from gbscan.pattern import PatternSpec
 
     from ..patterns import calibration_frames
 
     spec = PatternSpec(args.projector[0], args.projector[1], args.stripe_px, not args.no_markers)
     out = Path(args.outdir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise GBError(f"cannot create output folder {out}: {e.strerror}") from None
+    make_dir(out, "output folder")
     frames = calibration_frames(spec)
     for name, img in frames.items():
         write_png(out / f"{name}.png", img)
