@@ -5,7 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from gbcal.board import Board, Detection, canonical_order, detect, detect_with_reason, draw_detection, parse_board
+from gbcal.board import (Board, Detection, canonical_order, detect, detect_with_reason, draw_detection,
+                         grid_irregularity, parse_board)
 from gbscan.camera import Camera
 from gbscan.errors import GBError
 
@@ -194,6 +195,30 @@ def test_low_contrast_board_is_rejected():
     assert det is None and why
     if "contrast too low" not in why:  # OpenCV may not find so faint a board at all
         assert "checkerboard" in why
+
+
+def test_grid_irregularity_separates_real_grids_from_scrambled_ones():
+    b = Board(7, 5, 30.0)
+    for angles in ((0, 0, 0), (35, -40, 10), (-50, 20, 30)):
+        R, t = centred_pose(b, rot(*angles), 550.0)
+        truth = Camera(640, 480, K, np.array([-0.3, 0.12, 0, 0, 0])).project(b.object_points() @ R.T + t)
+        assert grid_irregularity(truth, b) < 0.35, angles
+    bad = truth.copy()
+    bad[[8, 9]] = bad[[9, 8]]  # two neighbours swapped: a corner in the wrong square
+    assert grid_irregularity(bad, b) > 0.9
+
+
+def test_a_scrambled_detector_grid_is_rejected_with_the_reason(monkeypatch):
+    b = Board(7, 5, 30.0)
+    R, t = centred_pose(b, rot(10, -15, 0), 550.0)
+    img, truth = render_board(b, R, t, ss=2)
+    assert detect(img, b) is not None
+    bad = truth.copy()
+    bad[[8, 15]] = bad[[15, 8]]
+    monkeypatch.setattr(cv2, "findChessboardCornersSBWithMeta",
+                        lambda *a: (True, bad.astype(np.float32).reshape(-1, 1, 2), None))
+    det, why = detect_with_reason(img, b, refine=False)
+    assert det is None and "not a regular checkerboard" in why
 
 
 def test_wrong_board_size_is_not_found():
