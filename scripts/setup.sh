@@ -38,7 +38,9 @@ if [ ! -x "$venv/bin/python" ]; then
   "$py" -m venv "$venv"
 fi
 stamp="$venv/.gbscan-installed"
-want="$(cat "$root/pyproject.toml" | sha256sum | cut -c1-16)"
+# the stamp covers pyproject.toml and this checkout's path: a venv copied from (or installed
+# editable by) another checkout is reinstalled here, so `gbscan` never runs someone else's code
+want="$({ cat "$root/pyproject.toml"; echo "$root"; } | sha256sum | cut -c1-16)"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   say "installing gbscan and its dependencies into .venv (first time: a few minutes)"
   log="$venv/pip-install.log"
