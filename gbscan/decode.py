@@ -10,7 +10,10 @@ Pipeline (each step a named function; the paper's steps 1-4, then beyond the pap
    near their local maxima; "none" for dark (shadow), saturated and low-contrast pixels.
 4. :func:`gbscan.unwrap.unwrap` -- the paper's seven unwrapping steps (relative stripe index per
    connected region).
-5. :func:`gbscan.unwrap.index_regions` -- absolute index per region from the cyan markers.
+5. :func:`gbscan.unwrap.index_regions` -- absolute index per region from the cyan markers; regions
+   and small components the markers cannot index alone are indexed through the reported pixels
+   around them where the projector column continues unambiguously
+   (:func:`gbscan.unwrap.link_components`), else dropped and counted.
 6. :func:`subpixel_boundaries` + column interpolation -- stripe boundaries to a fraction of a
    camera pixel, then each pixel's continuous projector column.
 
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -31,7 +35,7 @@ from .pattern import PatternSpec
 from .unwrap import UnwrapParams
 
 #: Mask reason codes (``StripeMap.mask``); 0 means the pixel is reported.
-OK, DARK, SATURATED, LOW_CONTRAST, ISOLATED, INCONSISTENT, UNINDEXED, NO_BOUNDARY = range(8)
+OK, DARK, SATURATED, LOW_CONTRAST, ISOLATED, INCONSISTENT, UNINDEXED, NO_BOUNDARY, RIM = range(9)
 REASONS = {
     OK: "ok",
     DARK: "dark",                   # no signal: shadow, background, too little light
@@ -41,6 +45,7 @@ REASONS = {
     INCONSISTENT: "inconsistent",   # disagrees with its vertical neighbours (step 7)
     UNINDEXED: "unindexed",         # region whose absolute index is not certain
     NO_BOUNDARY: "no_boundary",     # not enclosed by located boundaries (segment end, image border)
+    RIM: "rim",                     # at a silhouette / bend: the along-stripe blur biases the column
 }
 
 
@@ -70,6 +75,16 @@ class DecodeParams:
     extrapolate : pixels beyond a segment's last boundary get a column up to this many
         stripe widths away (0: only pixels between two boundaries).
     unwrap : parameters of the unwrapping and absolute indexing.
+    rim_bias_px : a pixel whose column the along-stripe blur is estimated to pull by more than this
+        (projector px; silhouettes above/below slanted stripes, strongly bent stripes) is masked
+        "rim" (0: never).  See :func:`rim_rule`.  Measured end to end (typical preset, after
+        cleaning; kept % of lit non-edge pixels / depth RMS mm): head 0.4: 83.2/0.278,
+        0.55: 84.3/0.298, 0.6: 84.6/0.302, 0.8: 85.8/0.322, 1.2: 86.7/0.351 (and a wrong pixel);
+        sphere 0.4: 88.7/0.149, 0.55: 89.3/0.159, 0.8: 90.2/0.183 (2 pixels > half a stripe off).
+    rim_end_px : pixels at most this far (camera px) from the end of their row's stretch of
+        decoded columns, and as close to a dark / saturated / low-contrast pixel, are masked "rim"
+        (left/right silhouettes and shadow edges: the local min/max windows mix in the background;
+        0: never).
     """
 
     blur_sigma_along_px: float = 2.0
@@ -88,6 +103,8 @@ class DecodeParams:
     raw_margin: float = 0.3
     extrapolate: float = 0.75
     unwrap: UnwrapParams = field(default_factory=UnwrapParams)
+    rim_bias_px: float = 0.55
+    rim_end_px: int = 1
 
     def __post_init__(self):
         def bad(name, why):
@@ -109,6 +126,8 @@ class DecodeParams:
             bad("min_contrast/cyan_level", "min_contrast in [0, 1), cyan_level in (0.5, 1)")
         if not isinstance(self.unwrap, UnwrapParams):
             bad("unwrap", "must be an UnwrapParams")
+        if not (float(self.rim_bias_px) >= 0) or int(self.rim_end_px) < 0:
+            bad("rim_bias_px/rim_end_px", "must be >= 0 (0 disables the rule)")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -200,13 +219,18 @@ def validate_image(image) -> np.ndarray:
     raise GBError(f"decode: image dtype {img.dtype} is not supported; expected uint8 RGB (or uint16, float in [0, 1])")
 
 
+def gamma_lut(camera_gamma: float = 2.2) -> np.ndarray:
+    """(256,) float32 table: encoded value -> linear ``255 (v/255)**camera_gamma``."""
+    return (255.0 * (np.arange(256) / 255.0) ** float(camera_gamma)).astype(np.float32)
+
+
 def linearize(image_rgb: np.ndarray, camera_gamma: float = 2.2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(H, W, 3) uint8 RGB -> linear green, blue (H, W) float32 (0..255 scale) and the raw
     (H, W) uint8 max of green and blue (for the saturation test).  Red is not used."""
     import cv2
 
     _, g8, b8 = cv2.split(image_rgb)
-    lut = (255.0 * (np.arange(256) / 255.0) ** float(camera_gamma)).astype(np.float32)
+    lut = gamma_lut(camera_gamma)
     return cv2.LUT(g8, lut), cv2.LUT(b8, lut), cv2.max(g8, b8)
 
 
@@ -218,6 +242,12 @@ def _gauss1d(sigma: float) -> np.ndarray:
     x = np.arange(-r, r + 1, dtype=np.float64)
     k = np.exp(-0.5 * (x / sigma) ** 2)
     return (k / k.sum()).astype(np.float32)
+
+
+def _gauss_half(sigma: float) -> np.ndarray:
+    """(r+1,) float32 half of :func:`_gauss1d` (centre first), for ``kernels.gauss_rows``."""
+    k = _gauss1d(sigma)
+    return np.ascontiguousarray(k[k.size // 2:])
 
 
 def motion_kernel(sigma_along_px: float, sigma_across_px: float, angle_deg: float) -> np.ndarray:
@@ -246,15 +276,24 @@ def motion_blur(channels: np.ndarray, sigma_along_px: float = 2.0, sigma_across_
                 angle_deg: float = 0.0) -> np.ndarray:
     """Paper step 1, *motion blurring*: Gaussian along the stripe direction.
 
-    channels : (H, W) or (H, W, C) float32.  Vertical stripes (``angle_deg == 0``) use the
-    separable path (``cv2.sepFilter2D``); other angles the rotated anisotropic kernel
-    (``cv2.filter2D``).  Borders are reflected.  Returns float32 of the same shape.
+    channels : (H, W) or (H, W, C) float32.  Vertical stripes without blur across (the default)
+    use the compiled vertical Gaussian (``kernels.gauss_image``, the arithmetic of the fast path
+    in :func:`decode`); vertical stripes with blur across the separable ``cv2.sepFilter2D``; other
+    angles the rotated anisotropic kernel (``cv2.filter2D``).  Borders are reflected
+    (``BORDER_REFLECT_101``).  Returns float32 of the same shape.
     """
     import cv2
+
+    from . import kernels
 
     x = np.ascontiguousarray(channels, dtype=np.float32)
     if sigma_along_px <= 0 and sigma_across_px <= 0:
         return x
+    if abs(angle_deg) < 1e-9 and sigma_across_px <= 0:
+        kh = _gauss_half(sigma_along_px)
+        if x.ndim == 2:
+            return kernels.gauss_image(x, kh)
+        return np.dstack([kernels.gauss_image(np.ascontiguousarray(x[..., c]), kh) for c in range(x.shape[2])])
     if abs(angle_deg) < 1e-9:
         kx = _gauss1d(sigma_across_px)
         ky = _gauss1d(sigma_along_px)
@@ -276,6 +315,9 @@ def colour_balance(planes, window_px: int | None = None, floor: float = 0.5) -> 
     import cv2
 
     planes = [np.asarray(x, dtype=np.float32) for x in planes]
+    if not window_px and len(planes) == 2:
+        scales = balance_scales(planes[0], planes[1], floor)
+        return [x * s for x, s in zip(planes, scales)]
     if not window_px:
         bright = planes[0]
         for x in planes[1:]:
@@ -291,6 +333,17 @@ def colour_balance(planes, window_px: int | None = None, floor: float = 0.5) -> 
             for x in planes]
 
 
+def balance_scales(g: np.ndarray, b: np.ndarray, floor: float = 0.5) -> tuple[np.float32, np.float32]:
+    """Global colour-balance factors ``1 / mean`` of two (H, W) float32 channels (``floor`` as in
+    :func:`colour_balance`): the means over every 4th pixel in both directions (plenty for a
+    global mean) that is lit (either channel above ``4 floor``; all of them if fewer than 16 are),
+    summed in float64 in row-major order (``kernels.lit_means``; the fast path shares it)."""
+    from . import kernels
+
+    mg, mb, _ = kernels.lit_means(g[::4, ::4], b[::4, ::4], np.float32(4.0 * floor))
+    return np.float32(1.0 / max(mg, floor)), np.float32(1.0 / max(mb, floor))
+
+
 # -- step 3: thresholding -----------------------------------------------------------------------
 @dataclass
 class Classified:
@@ -298,6 +351,7 @@ class Classified:
 
     labels : uint8 NONE/GREEN/BLUE/CYAN.  reason : uint8 OK/DARK/SATURATED/LOW_CONTRAST.
     d : float32 (g - b)/(g + b) of the balanced channels.  thr : float32 its threshold.
+    (``d`` and ``thr`` are None on :func:`decode`'s fast path, which never stores them whole.)
     gn, bn : float32 channels normalised to [0, 1] between their local min and max (sub-pixel).
     contrast : float32 min over the two channels of (local max - local min) / local max.
     """
@@ -313,16 +367,30 @@ class Classified:
 
 def local_minmax(x: np.ndarray, window_px: int) -> tuple[np.ndarray, np.ndarray]:
     """Horizontal running min and max of (H, W) float32 over ``window_px`` (odd), then smoothed
-    by a box of the same width so they vary smoothly across stripes."""
-    import cv2
+    by a box of the same width so they vary smoothly across stripes (``BORDER_REPLICATE``; as
+    ``cv2.erode``/``cv2.dilate`` then ``cv2.blur`` with a 1 x w kernel, compiled:
+    ``kernels.local_minmax_image``)."""
+    from . import kernels
 
-    w = int(window_px) | 1
-    k = np.ones((1, w), np.uint8)
-    lo = cv2.erode(x, k, borderType=cv2.BORDER_REPLICATE)
-    hi = cv2.dilate(x, k, borderType=cv2.BORDER_REPLICATE)
-    lo = cv2.blur(lo, (w, 1), borderType=cv2.BORDER_REPLICATE)
-    hi = cv2.blur(hi, (w, 1), borderType=cv2.BORDER_REPLICATE)
-    return lo, hi
+    return kernels.local_minmax_image(np.ascontiguousarray(x, dtype=np.float32), int(window_px) | 1)
+
+
+def local_threshold(d: np.ndarray, window_px: int) -> np.ndarray:
+    """The paper's local threshold: the ``window_px`` x ``window_px`` box mean of (H, W) float32
+    ``d`` (odd window, ``BORDER_REFLECT_101``; as ``cv2.blur``, compiled: ``kernels.box_image``)."""
+    from . import kernels
+
+    return kernels.box_image(np.ascontiguousarray(d, dtype=np.float32), int(window_px) | 1)
+
+
+def _rule_args(params: DecodeParams) -> tuple:
+    # the per-pixel rule parameters of kernels.classify_row, in its order
+    return (np.float32(params.cyan_level), np.float32(params.min_level), np.float32(params.raw_margin),
+            np.float32(params.min_contrast), np.float32(params.dark_level), int(params.saturation_level))
+
+
+def _threshold_window(params: DecodeParams) -> int:
+    return int(params.threshold_window_px) | 1 if params.threshold == "local" else 0
 
 
 def classify(blurred, balanced, raw, raw_max: np.ndarray, params: DecodeParams) -> Classified:
@@ -332,33 +400,22 @@ def classify(blurred, balanced, raw, raw_max: np.ndarray, params: DecodeParams) 
     colour balancing.  raw : (g, b) linear channels before blurring.  raw_max : (H, W)
     uint8 max of the raw encoded green and blue (saturation test).
     Green/blue: ``d = (g - b)/(g + b)`` of the balanced channels against its local box mean
-    (``threshold="local"``) or 0 (``"global"``).  Cyan (beyond the paper): both channels above
-    ``cyan_level`` of their local range.  None: saturated; dark (local modulation below
-    ``dark_level``, the pixel far below the local stripe level, or a row that is dark before
-    blurring -- vertical blur leaks light into shadowed rows); low contrast (a channel's local
-    modulation below ``min_contrast`` of its maximum, or the unblurred pixel clearly shows the
-    other colour: blurring along the stripes must not carry a colour across a horizontal depth
-    edge or shadow edge onto another surface).
+    (:func:`local_threshold`, ``threshold="local"``) or 0 (``"global"``).  Cyan (beyond the paper):
+    both channels above ``cyan_level`` of their local range (:func:`local_minmax`).  None:
+    saturated; dark (local modulation below ``dark_level``, the pixel far below the local stripe
+    level, or a row that is dark before blurring -- vertical blur leaks light into shadowed rows);
+    low contrast (a channel's local modulation below ``min_contrast`` of its maximum, or the
+    unblurred pixel clearly shows the other colour: blurring along the stripes must not carry a
+    colour across a horizontal depth edge or shadow edge onto another surface).
+    Whole images, one step after another (``kernels.classify_image``); :func:`decode`'s fast path
+    streams the same row arithmetic (``kernels.classify_frame``) and gives bit-identical results.
     """
-    import cv2
-
     from . import kernels
 
-    g, b = balanced
-    d = cv2.divide(cv2.subtract(g, b), cv2.max(cv2.add(g, b), 1e-6))
-    if params.threshold == "local":
-        w = int(params.threshold_window_px) | 1
-        thr = cv2.blur(d, (w, w), borderType=cv2.BORDER_REFLECT_101)
-    else:
-        thr = np.zeros_like(d)
-    lo_g, hi_g = local_minmax(blurred[0], params.norm_window_px)
-    lo_b, hi_b = local_minmax(blurred[1], params.norm_window_px)
-    w = int(params.norm_window_px) | 1
-    raw_hi = cv2.dilate(cv2.max(raw[0], raw[1]), np.ones((1, w), np.uint8), borderType=cv2.BORDER_REPLICATE)
-    labels, reason, gn, bn, contrast = kernels.classify_pixels(
-        blurred[0], blurred[1], d, thr, lo_g, hi_g, lo_b, hi_b, raw[0], raw[1], raw_hi, raw_max,
-        np.float32(params.cyan_level), np.float32(params.min_level), np.float32(params.raw_margin),
-        np.float32(params.min_contrast), np.float32(params.dark_level), int(params.saturation_level))
+    f32 = [np.ascontiguousarray(x, dtype=np.float32) for x in (*blurred, *balanced, *raw)]
+    labels, reason, d, thr, gn, bn, contrast = kernels.classify_image(
+        *f32, np.ascontiguousarray(raw_max, dtype=np.uint8), _threshold_window(params),
+        int(params.norm_window_px) | 1, *_rule_args(params))
     return Classified(labels, reason, d, thr, gn, bn, contrast)
 
 
@@ -377,6 +434,88 @@ def subpixel_boundaries(cls: Classified, segs) -> np.ndarray:
                                       segs.j_lb, segs.u0, segs.u1, segs.j_seg)
 
 
+def rim_rule(column_rel: np.ndarray, region: np.ndarray, reg_off_px: np.ndarray, reason: np.ndarray,
+             params: DecodeParams, pull_out: np.ndarray | None = None) -> int:
+    """Mask ``RIM`` the columns that silhouettes and bends make unreliable; returns their count.
+
+    column_rel : (H, W) float32 relative projector columns (px, NaN none); region : (H, W) int32;
+    reg_off_px : (n_regions,) float32 absolute offset of each region (projector px), NaN if not
+    indexed (the rules compare columns across regions).  reason : (H, W) uint8 codes, written in
+    place where still OK (:func:`gbscan.kernels.finish_pixels` keeps any input reason).
+    pull_out : optional (H, W) float32 that receives the estimated pull (diagnostics, tests).
+    Two rules (one pass, :func:`gbscan.kernels.rim_mask`):
+
+    * *pull* (``rim_bias_px``): to first order the decoded column is the true column blurred along
+      the stripes like the image, with weights only where the surface gives signal.  On a plane
+      that changes nothing; where stripes bend (``c_vv``) or the surface ends above or below a
+      slanted stripe (one-sided weights at a silhouette) the column is pulled.  The same blur on
+      the *decoded* column estimates that pull (blurring a blurred column moves it by the same
+      amount, to first order): a vertical mean over ``2 h + 1`` rows, ``h = round(sqrt(3) sigma)``
+      (the variance of the Gaussian), normalised over the finite columns; pixels pulled by more
+      than ``rim_bias_px`` are masked.  Modelled for vertical stripes (``stripe_angle_deg == 0``)
+      only.  Subtracting the pull instead of masking was measured: it raises the depth RMS of the
+      kept pixels on sphere and head.
+    * *end* (``rim_end_px``): pixels at most ``rim_end_px`` from the end of their row's stretch of
+      columns and as close to a pixel without signal (dark, saturated, low contrast): left/right
+      silhouettes and shadow edges, where the local min/max windows mix in the background.
+    """
+    from . import kernels
+
+    sigma = float(params.blur_sigma_along_px)
+    modelled = sigma > 0 and abs(params.stripe_angle_deg) < 1e-9
+    pull = float(params.rim_bias_px) if modelled else 0.0
+    half = max(1, int(round(math.sqrt(3.0) * sigma)))
+    if pull_out is None:
+        pull_out = np.zeros((0, 0), np.float32)
+    return int(kernels.rim_mask(np.ascontiguousarray(column_rel, dtype=np.float32),
+                                np.ascontiguousarray(region, dtype=np.int32),
+                                np.ascontiguousarray(reg_off_px, dtype=np.float32), reason, half, pull,
+                                int(params.rim_end_px), RIM, pull_out))
+
+
+def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: PatternSpec, params: DecodeParams) -> int:
+    """Index the components the markers cannot index alone through the reported pixels around
+    them (:func:`gbscan.unwrap.link_components`); updates ``un`` (region, inconsistent,
+    seg_region, stats) and ``idx`` (arrays extended by the new regions) in place and returns the
+    new number of regions.  The votes come from pixels that will be reported: indexed, no reason
+    so far, consistent, and not pulled by the along-stripe blur (the rim rule on a copy)."""
+    from . import kernels
+    from . import unwrap as uw
+
+    n_reg = int(idx.indexed.size)
+    reg_off = np.where(idx.indexed, idx.offset * pattern.stripe_px, np.nan).astype(np.float32)
+
+    def reported():
+        reason = cls.reason.copy()
+        if params.rim_bias_px > 0 or params.rim_end_px > 0:
+            rim_rule(column_rel, un.region, reg_off, reason, params)
+        return kernels.reported_columns(un.region, reason, un.inconsistent, cls.labels, column_rel, reg_off)
+
+    lk = uw.link_components(cls.labels, un, idx, column_all, reported, pattern, params.unwrap)
+    un.stats.update({f"link_{k}": v for k, v in lk.stats.items()})
+    if not lk.stats["components_linked"]:
+        return n_reg
+    segs = un.segments
+    region, _ = kernels.paint_regions(segs.seg, segs.rel, lk.seg_region.astype(np.int32), un.seg_P.astype(np.int32))
+    un.region = region
+    un.seg_region = lk.seg_region
+    un.inconsistent = uw.check_pixels(cls.labels, un.relative, region)
+    n_new = int(lk.offset.size)
+    ext = n_new - n_reg
+    votes = np.maximum(lk.votes + lk.dissent, 1)
+    # a linked region's margin: half of a marker-indexed one's, scaled by its vote agreement
+    evidence = np.where(lk.linked, 2 * votes, np.r_[idx.evidence, np.zeros(ext, np.int64)])
+    mismatch = np.where(lk.linked, 0, np.r_[idx.mismatch, np.zeros(ext, np.int64)])
+    runner_up = np.where(lk.linked, lk.votes, np.r_[idx.runner_up, np.zeros(ext, np.int64)])
+    idx.offset, idx.indexed = lk.offset, lk.indexed
+    idx.evidence, idx.mismatch, idx.runner_up = evidence, mismatch, runner_up
+    idx.markers_seen = np.r_[idx.markers_seen, np.zeros(ext, np.int64)]
+    idx.why = [("linked" if lk.linked[k] else idx.why[k]) for k in range(n_reg)] + ["linked"] * ext
+    un.region_px = np.r_[un.region_px, np.zeros(ext, np.int64)]
+    un.stats["regions_linked"] = int(lk.linked.sum())
+    return n_new
+
+
 # -- everything ---------------------------------------------------------------------------------
 def empty_stripemap(shape, pattern: PatternSpec, reason: int, why: str, stats: dict | None = None) -> StripeMap:
     """A StripeMap reporting nothing, every pixel masked with ``reason``; ``stats['why']`` says why."""
@@ -390,6 +529,50 @@ def empty_stripemap(shape, pattern: PatternSpec, reason: int, why: str, stats: d
                      pattern)
 
 
+def fast_path(params: DecodeParams, keep_stages: bool = False) -> bool:
+    """Whether :func:`decode` runs stages 1-3 fused: vertical stripes (``stripe_angle_deg == 0``)
+    blurred only along them, the global colour balance, and no stage images requested.  (The
+    rotated kernel and the local balance window stay on the staged path: OpenCV's 2-D filters.)"""
+    return (not keep_stages and abs(params.stripe_angle_deg) < 1e-9 and params.blur_sigma_across_px <= 0
+            and not params.balance_window_px)
+
+
+class _Workspace:
+    """Per-thread scratch of the fast path for one frame size: linear and blurred green and blue,
+    the raw maximum, and the classification images that never leave :func:`decode` (reason, gn,
+    bn, contrast; the StripeMap copies what it keeps).  Reused from frame to frame: fresh pages
+    cost more than the arithmetic here (a page fault each 4 KiB).  30 bytes per pixel per
+    decoding thread."""
+
+    def __init__(self, H: int, W: int):
+        self.shape = (H, W)
+        self.lin_g = np.empty((H, W), np.float32)
+        self.lin_b = np.empty((H, W), np.float32)
+        self.raw_max = np.empty((H, W), np.uint8)
+        self.g = np.empty((H, W), np.float32)
+        self.b = np.empty((H, W), np.float32)
+        self.gn = np.empty((H, W), np.float32)
+        self.bn = np.empty((H, W), np.float32)
+        self.contrast = np.empty((H, W), np.float32)
+        self.reason = np.empty((H, W), np.uint8)
+
+
+_THREAD = threading.local()
+
+
+def _workspace(H: int, W: int) -> _Workspace:
+    ws = getattr(_THREAD, "workspace", None)
+    if ws is None or ws.shape != (H, W):
+        ws = _THREAD.workspace = None  # drop the old one first (peak memory)
+        ws = _THREAD.workspace = _Workspace(H, W)
+    return ws
+
+
+def release_workspace() -> None:
+    """Free this thread's fast-path workspace (the next :func:`decode` allocates it again)."""
+    _THREAD.workspace = None
+
+
 def cv2_max(a: np.ndarray, b: np.ndarray) -> float:
     """Largest value of two same-shape arrays (OpenCV's fast reductions)."""
     import cv2
@@ -400,8 +583,12 @@ def cv2_max(a: np.ndarray, b: np.ndarray) -> float:
 def _count_reasons(mask: np.ndarray) -> dict:
     from . import kernels
 
-    counts = kernels.count_codes(np.ascontiguousarray(mask, dtype=np.uint8), len(REASONS))
-    return {"pixels": int(mask.size), "reported": int(counts[OK]),
+    return _reason_stats(kernels.count_codes(np.ascontiguousarray(mask, dtype=np.uint8), len(REASONS)))
+
+
+def _reason_stats(counts: np.ndarray) -> dict:
+    # counts[code] of a mask -> the stats entries "pixels", "reported", "reasons"
+    return {"pixels": int(counts.sum()), "reported": int(counts[OK]),
             "reasons": {REASONS[k]: int(counts[k]) for k in REASONS}}
 
 
@@ -413,6 +600,13 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     pattern : the projected pattern (stripe width, markers).
     params : :class:`DecodeParams`.
     keep_stages : also return the intermediate images in ``StripeMap.stages`` (previews).
+
+    Stages 1-3 run fused (``kernels.blur_frame`` + ``kernels.classify_frame``) when
+    :func:`fast_path` allows (vertical stripes, no blur across them, global colour balance, no
+    stages kept); otherwise the named functions run one after another.  Both give bit-identical
+    results (same row arithmetic).  ``stats['ms']``: input (validation; + linearisation on the
+    staged path), blur (+ linearisation on the fast path), balance, classify, unwrap, index,
+    subpixel, finish, total.
 
     Returns a :class:`StripeMap`.  Raises GBError for unusable input (grey image, bad dtype,
     NaN); an image without a usable stripe signal gives an empty StripeMap whose ``stats['why']``
@@ -429,26 +623,47 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     t0 = time.perf_counter()
     img = validate_image(image_rgb)
     H, W = img.shape[:2]
-    g_lin, b_lin, raw_max = linearize(img, params.camera_gamma)
-    t = time.perf_counter()
-    ms["input"] = (t - t0) * 1e3
-    if int(raw_max.max()) == 0 or float(cv2_max(g_lin, b_lin)) < params.dark_level:
-        return empty_stripemap((H, W), pattern, DARK, "image is dark: no projected light seen "
-                               f"(green/blue never reach dark_level={params.dark_level:g} linear DN)", {"ms": ms})
-
-    blurred = [motion_blur(x, params.blur_sigma_along_px, params.blur_sigma_across_px, params.stripe_angle_deg)
-               for x in (g_lin, b_lin)]
-    t1 = time.perf_counter()
-    ms["blur"] = (t1 - t) * 1e3
-    balanced = colour_balance(blurred, params.balance_window_px)
-    t2 = time.perf_counter()
-    ms["balance"] = (t2 - t1) * 1e3
-    import cv2
-
-    cls = classify(blurred, balanced, (g_lin, b_lin), raw_max, params)
+    dark_why = ("image is dark: no projected light seen "
+                f"(green/blue never reach dark_level={params.dark_level:g} linear DN)")
+    if fast_path(params, keep_stages):
+        # stages 1-3 fused: two passes over the rows, no full-size temporaries but the blurred
+        # channels (a per-thread workspace, reused from frame to frame like the other scratch)
+        ws = _workspace(H, W)
+        lut = gamma_lut(params.camera_gamma)
+        t = time.perf_counter()
+        ms["input"] = (t - t0) * 1e3
+        top = kernels.blur_frame(img, lut, _gauss_half(params.blur_sigma_along_px), ws.lin_g, ws.lin_b, ws.raw_max,
+                                 ws.g, ws.b)
+        t1 = time.perf_counter()
+        ms["blur"] = (t1 - t) * 1e3
+        if top == 0 or lut[top] < params.dark_level:
+            return empty_stripemap((H, W), pattern, DARK, dark_why, {"ms": ms})
+        sg, sb = balance_scales(ws.g, ws.b)
+        t2 = time.perf_counter()
+        ms["balance"] = (t2 - t1) * 1e3
+        labels = np.empty((H, W), np.uint8)
+        kernels.classify_frame(ws.lin_g, ws.lin_b, ws.raw_max, ws.g, ws.b, sg, sb, _threshold_window(params),
+                               int(params.norm_window_px) | 1, *_rule_args(params),
+                               labels, ws.reason, ws.gn, ws.bn, ws.contrast)
+        cls = Classified(labels, ws.reason, None, None, ws.gn, ws.bn, ws.contrast)
+        blurred = balanced = None
+    else:
+        g_lin, b_lin, raw_max = linearize(img, params.camera_gamma)
+        t = time.perf_counter()
+        ms["input"] = (t - t0) * 1e3
+        if int(raw_max.max()) == 0 or float(cv2_max(g_lin, b_lin)) < params.dark_level:
+            return empty_stripemap((H, W), pattern, DARK, dark_why, {"ms": ms})
+        blurred = [motion_blur(x, params.blur_sigma_along_px, params.blur_sigma_across_px, params.stripe_angle_deg)
+                   for x in (g_lin, b_lin)]
+        t1 = time.perf_counter()
+        ms["blur"] = (t1 - t) * 1e3
+        balanced = colour_balance(blurred, params.balance_window_px)
+        t2 = time.perf_counter()
+        ms["balance"] = (t2 - t1) * 1e3
+        cls = classify(blurred, balanced, (g_lin, b_lin), raw_max, params)
     t3 = time.perf_counter()
     ms["classify"] = (t3 - t2) * 1e3
-    if cv2.countNonZero(cls.labels) == 0:
+    if not cls.labels.any():
         why = ("image is saturated" if (cls.reason == SATURATED).mean() > 0.5 else
                "no stripes found: no pixel shows green/blue modulation (uniform colour, out of focus, or no pattern)")
         sm = empty_stripemap((H, W), pattern, LOW_CONTRAST, why, {"ms": ms})
@@ -462,6 +677,11 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     ms["unwrap"] = (t4 - t3) * 1e3
     n_reg = int(un.region_px.size)
     idx = uw.index_regions(cls.labels, un.relative, un.region, n_reg, pattern, params.unwrap)
+    # stretches of rows whose own markers contradict their region's offset (a surface welded in
+    # across a depth edge): reported as unindexed.  finish_pixels keeps any non-zero input reason.
+    for v, a, b in uw.marker_conflicts(cls.labels, un, idx, pattern, params.unwrap).tolist():
+        row = cls.reason[v, a:b + 1]
+        row[row == OK] = UNINDEXED
     t5 = time.perf_counter()
     ms["index"] = (t5 - t4) * 1e3
 
@@ -474,6 +694,21 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     column_rel = kernels.interpolate_columns(H, W, segs.row, segs.u0, segs.u1, segs.j0, segs.j1,
                                              (seg_reg >= 0).astype(np.uint8), jx.astype(np.float64), j_bnd,
                                              float(pattern.stripe_px), float(params.extrapolate))
+    if params.unwrap.link_votes > 0 and pattern.markers and idx.indexed.any() and \
+            (un.isolated.any() or not idx.indexed.all()):
+        # every component's columns: the small / unindexed ones may be indexed through neighbours
+        column_all = kernels.interpolate_columns(H, W, segs.row, segs.u0, segs.u1, segs.j0, segs.j1,
+                                                 np.ones(segs.n, np.uint8), jx.astype(np.float64), j_bnd,
+                                                 float(pattern.stripe_px), float(params.extrapolate))
+        n_new = _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern, params)
+        if n_new != n_reg or un.stats.get("link_components_linked", 0):
+            n_reg = n_new
+            column_rel = kernels.interpolate_columns(H, W, segs.row, segs.u0, segs.u1, segs.j0, segs.j1,
+                                                     (un.seg_region >= 0).astype(np.uint8), jx.astype(np.float64),
+                                                     j_bnd, float(pattern.stripe_px), float(params.extrapolate))
+    if params.rim_bias_px > 0 or params.rim_end_px > 0:
+        reg_off = np.where(idx.indexed, idx.offset * pattern.stripe_px, np.nan).astype(np.float32)
+        rim_rule(column_rel, un.region, reg_off, cls.reason, params)
     t6 = time.perf_counter()
     ms["subpixel"] = (t6 - t5) * 1e3
 
@@ -487,14 +722,16 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         reg_shift[:] = idx.offset
         if pattern.markers:
             reg_margin[:] = np.clip((idx.runner_up - idx.mismatch) / np.maximum(idx.evidence, 1), 0, 1)
-    mask, column, stripe, conf, region = kernels.finish_pixels(
-        cls.reason, cls.labels, un.region, un.relative, column_rel, un.inconsistent, reg_shift, reg_indexed,
-        reg_margin, cls.contrast, int(pattern.stripe_px), int(pattern.n_stripes), float(params.min_contrast))
+    region = un.region.copy() if keep_stages else un.region  # finish joins one-pixel gaps in place
+    mask, column, stripe, conf, counts = kernels.finish_pixels(
+        cls.reason, cls.labels, region, un.relative, column_rel, un.inconsistent, reg_shift, reg_indexed,
+        reg_margin, cls.contrast, int(pattern.stripe_px), int(pattern.n_stripes), float(params.min_contrast),
+        len(REASONS))
     t7 = time.perf_counter()
     ms["finish"] = (t7 - t6) * 1e3
     ms["total"] = (t7 - t0) * 1e3
 
-    stats = _count_reasons(mask)
+    stats = _reason_stats(counts)
     stats.update(un.stats)
     stats["regions_indexed"] = int(idx.indexed.sum())
     stats["regions_unindexed"] = int(n_reg - idx.indexed.sum())
@@ -510,6 +747,6 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
                   "labels": cls.labels, "gn": cls.gn, "bn": cls.bn, "contrast": cls.contrast, "relative": un.relative, "region": un.region,
                   "believable": np.where(segs.seg >= 0, un.believable[np.maximum(segs.seg, 0)], False),
                   "index": idx}
-    column_rel = np.where(region >= 0, column_rel, np.nan).astype(np.float32)
+    # (column_rel is NaN outside regions: finish_pixels did it in place)
     return StripeMap(column, stripe, conf, mask, un.relative, region, cls.labels, stats, pattern, stages,
                      column_rel)

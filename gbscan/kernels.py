@@ -1,6 +1,7 @@
 """Sequential row/segment kernels of the decoder, compiled with numba (``cache=True``).
 
-Only :mod:`gbscan.unwrap` and :mod:`gbscan.decode` import this module, so ``gbscan --help`` never
+Only :mod:`gbscan.unwrap`, :mod:`gbscan.decode` and (inside its functions) :mod:`gbscan.clean`
+import this module, so ``gbscan --help`` never
 pays for numba.  Every kernel works on plain numpy arrays; the conventions are those of
 :mod:`gbscan.unwrap`:
 
@@ -475,6 +476,119 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
 
 
 @njit(cache=True, nogil=True)
+def link_votes(comp, col_rel, col_abs, max_gap_px):
+    """Column-continuity votes of reported pixels for the offset of unindexed components.
+
+    comp (H, W) int32 component id of a candidate pixel (-1 none); col_rel (H, W) float32 its
+    column relative to its component (NaN none); col_abs (H, W) float32 absolute column of the
+    reported pixels (NaN none; disjoint from the candidates).  A candidate pixel whose vertical
+    neighbours (v +- 1, v +- 2) or, along its row past at most ``max_gap_px`` pixels of neither,
+    two horizontal neighbours are reported predicts its absolute column by linear extrapolation
+    of theirs; each prediction is one vote ``pred - col_rel`` (px).  Returns (comp, residual,
+    line) with ``line`` = column (vertical votes) or ``-1 - row`` (horizontal votes).
+    """
+    H, W = comp.shape
+    n = 0
+    for v in range(H):
+        for u in range(W):
+            if comp[v, u] >= 0:
+                n += 1
+    out_c = np.empty(4 * n, np.int32)
+    out_r = np.empty(4 * n, np.float64)
+    out_l = np.empty(4 * n, np.int32)
+    m = 0
+    for v in range(H):
+        for u in range(W):
+            c = comp[v, u]
+            if c < 0 or np.isnan(col_rel[v, u]):
+                continue
+            x = col_rel[v, u]
+            for d in (-1, 1):
+                q, q2 = v + d, v + 2 * d
+                if 0 <= q2 < H and not np.isnan(col_abs[q, u]) and not np.isnan(col_abs[q2, u]):
+                    out_c[m] = c
+                    out_r[m] = 2.0 * col_abs[q, u] - col_abs[q2, u] - x
+                    out_l[m] = u
+                    m += 1
+                for k in range(1, max_gap_px + 2):
+                    q = u + d * k
+                    q2 = q + 2 * d
+                    if q < 0 or q >= W or comp[v, q] >= 0:
+                        break
+                    if not np.isnan(col_abs[v, q]):
+                        if 0 <= q2 < W and not np.isnan(col_abs[v, q2]):
+                            slope = (col_abs[v, q2] - col_abs[v, q]) / (2.0 * d)
+                            out_c[m] = c
+                            out_r[m] = col_abs[v, q] + slope * (u - q) - x
+                            out_l[m] = -1 - v
+                            m += 1
+                        break
+    return out_c[:m], out_r[:m], out_l[:m]
+
+
+@njit(cache=True, nogil=True)
+def component_pixels(seg, seg_comp, col):
+    """(H, W) int32 component of each pixel (``seg_comp[seg]``, -1 none) and (H, W) float32 its
+    column ``col`` there (NaN elsewhere); also the number of such pixels with a finite column."""
+    H, W = seg.shape
+    comp = np.full((H, W), -1, np.int32)
+    out = np.full((H, W), np.nan, np.float32)
+    n = 0
+    for v in range(H):
+        for u in range(W):
+            s = seg[v, u]
+            if s >= 0 and seg_comp[s] >= 0:
+                comp[v, u] = seg_comp[s]
+                out[v, u] = col[v, u]
+                if not np.isnan(col[v, u]):
+                    n += 1
+    return comp, out, n
+
+
+@njit(cache=True, nogil=True)
+def reported_columns(region, reason, inconsistent, labels, column_rel, reg_off_px):
+    """(H, W) float32 absolute column ``column_rel + reg_off_px[region]`` of the pixels that are
+    reported so far (region indexed -- finite offset --, reason 0, consistent, labelled), NaN
+    elsewhere."""
+    H, W = region.shape
+    out = np.full((H, W), np.nan, np.float32)
+    for v in range(H):
+        for u in range(W):
+            r = region[v, u]
+            if r >= 0 and reason[v, u] == 0 and not inconsistent[v, u] and labels[v, u] != NONE:
+                o = reg_off_px[r]
+                if not np.isnan(o):
+                    out[v, u] = column_rel[v, u] + o
+    return out
+
+
+@njit(cache=True, nogil=True)
+def component_marker_counts(comp, relative, labels, comp_shift, take, is_marker):
+    """Per component (``take[c]``): its pixels and those whose stripe ``relative + comp_shift[c]``
+    is outside the pattern or whose colour contradicts the markers there (cyan on a non-marker
+    stripe, green/blue on a marker stripe).  Returns (n_px, n_bad) int64 arrays like ``take``."""
+    H, W = comp.shape
+    n_st = is_marker.shape[0]
+    n_px = np.zeros(take.shape[0], np.int64)
+    n_bad = np.zeros(take.shape[0], np.int64)
+    for v in range(H):
+        for u in range(W):
+            c = comp[v, u]
+            if c < 0 or not take[c]:
+                continue
+            n_px[c] += 1
+            st = relative[v, u] + comp_shift[c]
+            lb = labels[v, u]
+            if st < 0 or st >= n_st:
+                n_bad[c] += 1
+            elif lb == CYAN and not is_marker[st]:
+                n_bad[c] += 1
+            elif (lb == GREEN or lb == BLUE) and is_marker[st]:
+                n_bad[c] += 1
+    return n_px, n_bad
+
+
+@njit(cache=True, nogil=True)
 def _run_key(labels, seg, rel, v, vn, a, b):
     # majority (segment, offset) key of the pixels a..b of row v against row vn (-1: no vote)
     best = np.int64(-1)
@@ -591,135 +705,827 @@ def apply_cuts(seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_par, j_seg, j_u
     return nseg, o_row, o_u0, o_u1, o_j0, o_j1, o_par, o_jseg, o_jua, o_jub, o_jla, o_jlb, o_jidx
 
 
-@njit(cache=True, nogil=True, fastmath=True)
-def classify_pixels(g, b, d, thr, lo_g, hi_g, lo_b, hi_b, raw_g, raw_b, raw_hi, raw_max, cyan_level, min_level,
-                    raw_margin, min_contrast, dark_level, saturation_level):
-    """Per-pixel part of :func:`gbscan.decode.classify` in one pass (see there for the rules).
+# -- decoder front end (stages 1-3): row primitives shared by the staged and the fused path -------
+# Each primitive fixes the order of its floating-point operations, so a value computed by the
+# staged functions (whole images, one stage after another) and by the fused streaming kernel
+# (a few rows in ring buffers) is bit-identical.  No fastmath: it would let LLVM reorder them.
+# What it takes for LLVM to vectorise these row loops (8 float32 lanes; measured 5-10x):
+# ``error_model="numpy"`` (no zero-division branch), offsets as slices (``a = x[off:]; a[i]``,
+# not ``x[i + off]``: an index that might be negative gets numba's wrap-around code), and
+# scratch rows as separate arrays (not rows of one 2-D array, nor arrays swapped at run time).
+_F0 = np.float32(0.0)
+_F1 = np.float32(1.0)
+_FHALF = np.float32(0.5)
+_EPS_RATIO = np.float32(1e-6)
+_EPS_RANGE = np.float32(1e-3)
 
-    Returns labels (uint8), reason (uint8: 0 ok, 1 dark, 2 saturated, 3 low contrast), gn, bn
-    (normalised channels) and contrast (float32).
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def reflect101(i, n):
+    """OpenCV's ``BORDER_REFLECT_101`` index of ``i`` in ``0 .. n-1`` (n >= 2)."""
+    if n == 1:
+        return 0
+    while i < 0 or i >= n:
+        i = -i if i < 0 else 2 * (n - 1) - i
+    return i
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def gauss_rows(src, rows, kh, out):
+    """One row of a vertical Gaussian: ``out[u] = kh[0] src[rows[r], u] + sum_j kh[j] (src[rows[r-j], u]
+    + src[rows[r+j], u])``, ``r = kh.size - 1``; ``src`` (n, W) float32, ``rows`` (2r+1,) row numbers
+    (border rows already reflected), ``kh`` (r+1,) float32 half kernel (centre first)."""
+    r = kh.size - 1
+    W = out.size
+    x0 = src[rows[r]]
+    k0 = kh[0]
+    for u in range(W):
+        out[u] = k0 * x0[u]
+    for j in range(1, r + 1):
+        a = src[rows[r - j]]
+        b = src[rows[r + j]]
+        kj = kh[j]
+        for u in range(W):
+            out[u] = out[u] + kj * (a[u] + b[u])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def ratio_row(g, b, sg, sb, d):
+    """``d = (sg g - sb b) / max(sg g + sb b, 1e-6)`` along a row (float32)."""
+    for u in range(d.size):
+        x = g[u] * sg
+        y = b[u] * sb
+        d[u] = (x - y) / max(x + y, _EPS_RATIO)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def sum_rows(src, rows, out, off):
+    """``out[off + u] = src[rows[0], u] + src[rows[1], u] + ...`` (float32, in that order)."""
+    W = src.shape[1]
+    o = out[off:off + W]     # slices, not ``out[off + u]``: an index that might be negative
+    a = src[rows[0]]         # gets numba's wrap-around code, which stops LLVM vectorising
+    for u in range(W):
+        o[u] = a[u]
+    for k in range(1, rows.size):
+        a = src[rows[k]]
+        for u in range(W):
+            o[u] = o[u] + a[u]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def box_row(p, w, ta, tb, scale, out):
+    """Sliding sum of ``w`` samples times ``scale``: ``out[i] = scale * sum(p[i : i + w])``.
+
+    p : (W + w - 1,) float32 padded row; ta, tb : scratch of p's size (two distinct arrays);
+    out : (W,).  Summed by doubling (partial sums over 1, 2, 4 ... samples, those named by the bits
+    of ``w`` added lowest first), so every output has the same few-ulp rounding and every loop
+    vectorises, unlike a running sum.  (Each loop names its arrays explicitly: LLVM does not
+    vectorise loops over arrays chosen at run time.)
+    """
+    n = p.size
+    W = out.size
+    if w & 1:
+        for i in range(W):
+            out[i] = p[i]
+    else:
+        for i in range(W):
+            out[i] = _F0
+    off = w & 1
+    span = 1
+    m = n - 1
+    for i in range(m):
+        ta[i] = p[i] + p[i + 1]
+    span = 2
+    while True:
+        if w & span:               # partial sums of `span` samples are in ta
+            a = ta[off:]
+            for i in range(W):
+                out[i] = out[i] + a[i]
+            off += span
+        if 2 * span > w:
+            break
+        m -= span
+        a = ta[span:]
+        for i in range(m):
+            tb[i] = ta[i] + a[i]
+        span *= 2
+        if w & span:               # ... in tb
+            a = tb[off:]
+            for i in range(W):
+                out[i] = out[i] + a[i]
+            off += span
+        if 2 * span > w:
+            break
+        m -= span
+        a = tb[span:]
+        for i in range(m):
+            ta[i] = tb[i] + a[i]
+        span *= 2
+    for i in range(W):
+        out[i] = out[i] * scale
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _slide_min(p, w, ta, tb, out, off):
+    # The ta/tb levels are written out rather than swapped in a loop, and min and max are two
+    # functions rather than one with a flag: measured here, a swapped pair of scratch rows makes
+    # LLVM give up vectorising (0.70 -> 1.24 us per 640-px row; helper functions 1.85 us).
+    n = p.size
+    W = n - w + 1
+    m = n - 1
+    for i in range(m):
+        ta[i] = min(p[i], p[i + 1])
+    step = 2
+    res = out[off:off + W]
+    while True:                     # windows of `step` samples in ta
+        if 2 * step > w:
+            a = ta[w - step:]
+            for i in range(W):
+                res[i] = min(ta[i], a[i])
+            return
+        m -= step
+        a = ta[step:]
+        for i in range(m):
+            tb[i] = min(ta[i], a[i])
+        step *= 2
+        if 2 * step > w:            # ... in tb
+            a = tb[w - step:]
+            for i in range(W):
+                res[i] = min(tb[i], a[i])
+            return
+        m -= step
+        a = tb[step:]
+        for i in range(m):
+            ta[i] = min(tb[i], a[i])
+        step *= 2
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _slide_max(p, w, ta, tb, out, off):
+    n = p.size
+    W = n - w + 1
+    m = n - 1
+    for i in range(m):
+        ta[i] = max(p[i], p[i + 1])
+    step = 2
+    res = out[off:off + W]
+    while True:                     # windows of `step` samples in ta
+        if 2 * step > w:
+            a = ta[w - step:]
+            for i in range(W):
+                res[i] = max(ta[i], a[i])
+            return
+        m -= step
+        a = ta[step:]
+        for i in range(m):
+            tb[i] = max(ta[i], a[i])
+        step *= 2
+        if 2 * step > w:            # ... in tb
+            a = tb[w - step:]
+            for i in range(W):
+                res[i] = max(tb[i], a[i])
+            return
+        m -= step
+        a = tb[step:]
+        for i in range(m):
+            ta[i] = max(tb[i], a[i])
+        step *= 2
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def minmax_row(p, w, ta, tb, lo, hi, off):
+    """Sliding minimum and maximum of ``w`` samples: ``lo[off + i] = min(p[i : i + w])``, exact, by
+    doubling (windows of 2, 4, 8 ... samples, then two overlapping ones).  p : (W + w - 1,) padded
+    row; ta, tb : scratch of p's size (two distinct arrays)."""
+    _slide_min(p, w, ta, tb, lo, off)
+    _slide_max(p, w, ta, tb, hi, off)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def max_row(p, w, ta, tb, hi):
+    """Sliding maximum of ``w`` samples: ``hi[i] = max(p[i : i + w])`` (see :func:`minmax_row`)."""
+    _slide_max(p, w, ta, tb, hi, 0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def pad_replicate(p, h, W):
+    """Fill the ``h`` samples on each side of ``p[h : h + W]`` with its first / last sample."""
+    a = p[h]
+    b = p[h + W - 1]
+    for k in range(h):
+        p[k] = a
+        p[h + W + k] = b
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def pad_reflect101(p, h, W):
+    """Fill the ``h`` samples on each side of ``p[h : h + W]`` by reflection about its end samples."""
+    for k in range(1, h + 1):
+        p[h - k] = p[h + reflect101(k, W)]
+        p[h + W - 1 + k] = p[h + reflect101(W - 1 - k, W)]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def classify_row(g, b, d, thr, lo_g, hi_g, lo_b, hi_b, raw_g, raw_b, raw_hi, raw_max, cyan_level, min_level,
+                 raw_margin, min_contrast, dark_level, saturation_level, labels, reason, gn, bn, contrast):
+    """Per-pixel rules of :func:`gbscan.decode.classify` along one row (branch-free, vectorises).
+
+    Writes labels (NONE/GREEN/BLUE/CYAN), reason (0 ok, 1 dark, 2 saturated, 3 low contrast), gn, bn
+    (channels normalised between their local min and max) and contrast.
+    """
+    for u in range(labels.size):
+        lg = lo_g[u]
+        lb = lo_b[u]
+        hg = hi_g[u]
+        hb = hi_b[u]
+        rg = max(hg - lg, _EPS_RANGE)
+        rb = max(hb - lb, _EPS_RANGE)
+        ig = _F1 / rg
+        ib = _F1 / rb
+        x = (g[u] - lg) * ig
+        y = (b[u] - lb) * ib
+        gn[u] = x
+        bn[u] = y
+        c = min(rg / max(hg, _EPS_RANGE), rb / max(hb, _EPS_RANGE))
+        contrast[u] = c
+        hn = max(x, y)
+        ln = min(x, y)
+        cyan = (x > cyan_level) & (y > cyan_level)
+        edge = (hn > cyan_level) & (ln > min_level)       # the rim of a cyan marker: neither colour
+        lab = np.int32(BLUE) - np.int32(d[u] > thr[u])     # GREEN where d above its threshold
+        lab = np.int32(NONE) if edge else lab
+        lab = np.int32(CYAN) if cyan else lab
+        diff_raw = (raw_g[u] - lg) * ig - (raw_b[u] - lb) * ib
+        low = ((c < min_contrast) | ((lab == GREEN) & (diff_raw < -raw_margin))
+               | ((lab == BLUE) & (diff_raw > raw_margin)))
+        mod = max(rg, rb)
+        dark = (mod < dark_level) | (hn < min_level) | (raw_hi[u] - min(lg, lb) < _FHALF * mod)
+        r = np.int32(3) if low else np.int32(0)
+        r = np.int32(1) if dark else r
+        r = np.int32(2) if np.int32(raw_max[u]) >= saturation_level else r
+        lab = lab if r == 0 else np.int32(NONE)
+        labels[u] = np.uint8(lab)
+        reason[u] = np.uint8(r)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def lit_means(g, b, bright_level):
+    """Means of ``g`` and ``b`` (2-D float32) over the samples where ``max(g, b) > bright_level``
+    (over all samples when fewer than 16 are that bright), summed in float64 in row-major order.
+    Returns ``(mean_g, mean_b, n_bright)``."""
+    sg = 0.0
+    sb = 0.0
+    ag = 0.0
+    ab = 0.0
+    n = 0
+    H, W = g.shape
+    for v in range(H):
+        for u in range(W):
+            x = g[v, u]
+            y = b[v, u]
+            ag += x
+            ab += y
+            if max(x, y) > bright_level:
+                sg += x
+                sb += y
+                n += 1
+    if n < 16:
+        return ag / max(H * W, 1), ab / max(H * W, 1), n
+    return sg / n, sb / n, n
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def gauss_image(x, kh):
+    """Vertical Gaussian of (H, W) float32 ``x`` (``BORDER_REFLECT_101``), row by row with
+    :func:`gauss_rows`; ``kh`` (r+1,) float32 half kernel.  Returns (H, W) float32."""
+    H, W = x.shape
+    r = kh.size - 1
+    out = np.empty((H, W), np.float32)
+    rows = np.empty(2 * r + 1, np.int64)
+    for v in range(H):
+        for j in range(2 * r + 1):
+            rows[j] = reflect101(v - r + j, H)
+        gauss_rows(x, rows, kh, out[v])
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def column_sums(src, v, H, w, mod, rows, P):
+    """Sum of the ``w`` (odd) rows around row ``v`` of an H-row image (``BORDER_REFLECT_101``)
+    into ``P[w//2 : w//2 + W]``, where image row ``y`` is ``src[y % mod]`` (``mod = H``: the whole
+    image; smaller: a ring buffer holding rows ``v - w//2 - 1 .. v + w//2``).  Rows whose window
+    crosses the border are summed afresh (:func:`sum_rows`); the others update the previous
+    row's sums: ``+ new row - old row`` (call for consecutive ``v``)."""
+    t = w // 2
+    W = src.shape[1]
+    if v - t - 1 < 0 or v + t >= H:
+        for k in range(w):
+            rows[k] = reflect101(v - t + k, H) % mod
+        sum_rows(src, rows[:w], P, t)
+        return
+    o = P[t:t + W]
+    a = src[(v + t) % mod]
+    b = src[(v - t - 1) % mod]
+    for u in range(W):
+        o[u] = o[u] + a[u] - b[u]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _box_image_row(x, v, w, rows, P, ta, tb, scale, out):
+    # one output row of the w x w box mean of x (BORDER_REFLECT_101 both ways); rows in order
+    H, W = x.shape
+    t = w // 2
+    column_sums(x, v, H, w, H, rows, P)
+    pad_reflect101(P, t, W)
+    box_row(P, w, ta, tb, scale, out)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def box_image(x, w):
+    """``w`` x ``w`` box mean of (H, W) float32 ``x`` (odd ``w``, ``BORDER_REFLECT_101``).
+    Columns of ``w`` rows are summed first (:func:`column_sums`), then :func:`box_row` along the row."""
+    H, W = x.shape
+    t = w // 2
+    out = np.empty((H, W), np.float32)
+    rows = np.empty(w, np.int64)
+    P = np.empty(W + 2 * t, np.float32)
+    ta = np.empty(W + 2 * t, np.float32)
+    tb = np.empty(W + 2 * t, np.float32)
+    scale = np.float32(1.0 / (w * w))
+    for v in range(H):
+        _box_image_row(x, v, w, rows, P, ta, tb, scale, out[v])
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _minmax_smooth_row(x, w, P, LO, HI, ta, tb, scale, lo, hi):
+    # horizontal running min/max over w (BORDER_REPLICATE), each then box-smoothed over w
+    W = x.size
+    h = w // 2
+    p = P[h:h + W]
+    for u in range(W):
+        p[u] = x[u]
+    pad_replicate(P, h, W)
+    minmax_row(P, w, ta, tb, LO, HI, h)
+    pad_replicate(LO, h, W)
+    pad_replicate(HI, h, W)
+    box_row(LO, w, ta, tb, scale, lo)
+    box_row(HI, w, ta, tb, scale, hi)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _slide_minmax2(pg, pb, w, a0, a1, a2, a3, b0, b1, b2, b3, lo_g, hi_g, lo_b, hi_b, off):
+    # _slide_min/_slide_max of two channels in the same loops (same results): windows of
+    # 2, 4, 8 ... samples ping-pong between the a* and b* scratch rows
+    n = pg.size
+    W = n - w + 1
+    m = n - 1
+    for i in range(m):
+        x = pg[i]
+        y = pg[i + 1]
+        a0[i] = min(x, y)
+        a1[i] = max(x, y)
+        x = pb[i]
+        y = pb[i + 1]
+        a2[i] = min(x, y)
+        a3[i] = max(x, y)
+    step = 2
+    while True:
+        if 2 * step > w:
+            o = w - step
+            q0, q1, q2, q3 = a0[o:], a1[o:], a2[o:], a3[o:]
+            r0, r1, r2, r3 = lo_g[off:off + W], hi_g[off:off + W], lo_b[off:off + W], hi_b[off:off + W]
+            for i in range(W):
+                r0[i] = min(a0[i], q0[i])
+                r1[i] = max(a1[i], q1[i])
+                r2[i] = min(a2[i], q2[i])
+                r3[i] = max(a3[i], q3[i])
+            return
+        m -= step
+        q0, q1, q2, q3 = a0[step:], a1[step:], a2[step:], a3[step:]
+        for i in range(m):
+            b0[i] = min(a0[i], q0[i])
+            b1[i] = max(a1[i], q1[i])
+            b2[i] = min(a2[i], q2[i])
+            b3[i] = max(a3[i], q3[i])
+        step *= 2
+        if 2 * step > w:
+            o = w - step
+            q0, q1, q2, q3 = b0[o:], b1[o:], b2[o:], b3[o:]
+            r0, r1, r2, r3 = lo_g[off:off + W], hi_g[off:off + W], lo_b[off:off + W], hi_b[off:off + W]
+            for i in range(W):
+                r0[i] = min(b0[i], q0[i])
+                r1[i] = max(b1[i], q1[i])
+                r2[i] = min(b2[i], q2[i])
+                r3[i] = max(b3[i], q3[i])
+            return
+        m -= step
+        q0, q1, q2, q3 = b0[step:], b1[step:], b2[step:], b3[step:]
+        for i in range(m):
+            a0[i] = min(b0[i], q0[i])
+            a1[i] = max(b1[i], q1[i])
+            a2[i] = min(b2[i], q2[i])
+            a3[i] = max(b3[i], q3[i])
+        step *= 2
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _box4_8to15(p0, p1, p2, p3, w, a0, a1, a2, a3, b0, b1, b2, b3, c0, c1, c2, c3, scale, o0, o1, o2, o3):
+    # _box4 for 8 <= w < 16 (the default window 15): the three levels of partial sums, then one
+    # pass adding those the bits of w name (a missing one as + 0 * level: exact), lowest first --
+    # the additions of box_row in its order, so the same results; 4 passes instead of 8
+    n = p0.size
+    W = o0.size
+    for i in range(n - 1):
+        a0[i] = p0[i] + p0[i + 1]
+        a1[i] = p1[i] + p1[i + 1]
+        a2[i] = p2[i] + p2[i + 1]
+        a3[i] = p3[i] + p3[i + 1]
+    q0, q1, q2, q3 = a0[2:], a1[2:], a2[2:], a3[2:]
+    for i in range(n - 3):
+        b0[i] = a0[i] + q0[i]
+        b1[i] = a1[i] + q1[i]
+        b2[i] = a2[i] + q2[i]
+        b3[i] = a3[i] + q3[i]
+    q0, q1, q2, q3 = b0[4:], b1[4:], b2[4:], b3[4:]
+    for i in range(n - 7):
+        c0[i] = b0[i] + q0[i]
+        c1[i] = b1[i] + q1[i]
+        c2[i] = b2[i] + q2[i]
+        c3[i] = b3[i] + q3[i]
+    f0 = _F1 if w & 1 else _F0
+    f1 = _F1 if w & 2 else _F0
+    f2 = _F1 if w & 4 else _F0
+    k1 = w & 1
+    k2 = k1 + (w & 2)
+    k3 = k2 + (w & 4)
+    r0, r1, r2, r3 = a0[k1:], a1[k1:], a2[k1:], a3[k1:]
+    s0, s1, s2, s3 = b0[k2:], b1[k2:], b2[k2:], b3[k2:]
+    t0, t1, t2, t3 = c0[k3:], c1[k3:], c2[k3:], c3[k3:]
+    for i in range(W):
+        o0[i] = (((p0[i] * f0 + r0[i] * f1) + s0[i] * f2) + t0[i]) * scale
+        o1[i] = (((p1[i] * f0 + r1[i] * f1) + s1[i] * f2) + t1[i]) * scale
+        o2[i] = (((p2[i] * f0 + r2[i] * f1) + s2[i] * f2) + t2[i]) * scale
+        o3[i] = (((p3[i] * f0 + r3[i] * f1) + s3[i] * f2) + t3[i]) * scale
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _box4(p0, p1, p2, p3, w, a0, a1, a2, a3, b0, b1, b2, b3, scale, o0, o1, o2, o3):
+    # box_row of four padded rows in the same loops (same arithmetic, same results)
+    n = p0.size
+    W = o0.size
+    if w & 1:
+        for i in range(W):
+            o0[i] = p0[i]
+            o1[i] = p1[i]
+            o2[i] = p2[i]
+            o3[i] = p3[i]
+    else:
+        for i in range(W):
+            o0[i] = _F0
+            o1[i] = _F0
+            o2[i] = _F0
+            o3[i] = _F0
+    off = w & 1
+    m = n - 1
+    for i in range(m):
+        a0[i] = p0[i] + p0[i + 1]
+        a1[i] = p1[i] + p1[i + 1]
+        a2[i] = p2[i] + p2[i + 1]
+        a3[i] = p3[i] + p3[i + 1]
+    span = 2
+    while True:
+        if w & span:
+            q0, q1, q2, q3 = a0[off:], a1[off:], a2[off:], a3[off:]
+            for i in range(W):
+                o0[i] = o0[i] + q0[i]
+                o1[i] = o1[i] + q1[i]
+                o2[i] = o2[i] + q2[i]
+                o3[i] = o3[i] + q3[i]
+            off += span
+        if 2 * span > w:
+            break
+        m -= span
+        q0, q1, q2, q3 = a0[span:], a1[span:], a2[span:], a3[span:]
+        for i in range(m):
+            b0[i] = a0[i] + q0[i]
+            b1[i] = a1[i] + q1[i]
+            b2[i] = a2[i] + q2[i]
+            b3[i] = a3[i] + q3[i]
+        span *= 2
+        if w & span:
+            q0, q1, q2, q3 = b0[off:], b1[off:], b2[off:], b3[off:]
+            for i in range(W):
+                o0[i] = o0[i] + q0[i]
+                o1[i] = o1[i] + q1[i]
+                o2[i] = o2[i] + q2[i]
+                o3[i] = o3[i] + q3[i]
+            off += span
+        if 2 * span > w:
+            break
+        m -= span
+        q0, q1, q2, q3 = b0[span:], b1[span:], b2[span:], b3[span:]
+        for i in range(m):
+            a0[i] = b0[i] + q0[i]
+            a1[i] = b1[i] + q1[i]
+            a2[i] = b2[i] + q2[i]
+            a3[i] = b3[i] + q3[i]
+        span *= 2
+    for i in range(W):
+        o0[i] = o0[i] * scale
+        o1[i] = o1[i] * scale
+        o2[i] = o2[i] * scale
+        o3[i] = o3[i] * scale
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def local_minmax_image(x, w):
+    """Horizontal running min and max of (H, W) float32 ``x`` over ``w`` (odd) samples, each then
+    smoothed by a box of the same width (both ``BORDER_REPLICATE``).  Returns (lo, hi) float32."""
+    H, W = x.shape
+    n = W + 2 * (w // 2)
+    P = np.empty(n, np.float32)
+    LO = np.empty(n, np.float32)
+    HI = np.empty(n, np.float32)
+    ta = np.empty(n, np.float32)
+    tb = np.empty(n, np.float32)
+    lo = np.empty((H, W), np.float32)
+    hi = np.empty((H, W), np.float32)
+    scale = np.float32(1.0 / w)
+    for v in range(H):
+        _minmax_smooth_row(x[v], w, P, LO, HI, ta, tb, scale, lo[v], hi[v])
+    return lo, hi
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _raw_hi_row(raw_g, raw_b, w, P, ta, tb, out):
+    # running max over w (BORDER_REPLICATE) of the brighter raw channel
+    W = out.size
+    h = w // 2
+    p = P[h:h + W]
+    for u in range(W):
+        p[u] = max(raw_g[u], raw_b[u])
+    pad_replicate(P, h, W)
+    max_row(P, w, ta, tb, out)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def classify_image(g, b, gbal, bbal, raw_g, raw_b, raw_max, thr_w, norm_w, cyan_level, min_level, raw_margin,
+                   min_contrast, dark_level, saturation_level):
+    """Stage 3 on whole images (the reference path of :func:`classify_frame`; see
+    :func:`gbscan.decode.classify`).  g, b : blurred linear channels; gbal, bbal : balanced;
+    raw_g, raw_b : linear before blurring; raw_max : uint8 max of raw green and blue (all (H, W)).
+    thr_w : odd local threshold window (0: global).  Returns labels, reason, d, thr, gn, bn, contrast.
     """
     H, W = g.shape
+    d = np.empty((H, W), np.float32)
+    one = np.float32(1.0)
+    for v in range(H):
+        ratio_row(gbal[v], bbal[v], one, one, d[v])
+    thr = box_image(d, thr_w) if thr_w > 0 else np.zeros((H, W), np.float32)
+    lo_g, hi_g = local_minmax_image(g, norm_w)
+    lo_b, hi_b = local_minmax_image(b, norm_w)
     labels = np.empty((H, W), np.uint8)
     reason = np.empty((H, W), np.uint8)
     gn = np.empty((H, W), np.float32)
     bn = np.empty((H, W), np.float32)
     contrast = np.empty((H, W), np.float32)
+    n = W + 2 * (norm_w // 2)
+    P = np.empty(n, np.float32)
+    ta = np.empty(n, np.float32)
+    tb = np.empty(n, np.float32)
+    raw_hi = np.empty(W, np.float32)
     for v in range(H):
+        _raw_hi_row(raw_g[v], raw_b[v], norm_w, P, ta, tb, raw_hi)
+        classify_row(g[v], b[v], d[v], thr[v], lo_g[v], hi_g[v], lo_b[v], hi_b[v], raw_g[v], raw_b[v], raw_hi,
+                     raw_max[v], cyan_level, min_level, raw_margin, min_contrast, dark_level, saturation_level,
+                     labels[v], reason[v], gn[v], bn[v], contrast[v])
+    return labels, reason, d, thr, gn, bn, contrast
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def blur_frame(img, lut, kh, Lg, Lb, rmax, Bg, Bb):
+    """Stages "input" and 1 of the fast path: linearise green and blue of an RGB uint8 frame with
+    ``lut`` into ``Lg, Lb`` (and their raw maximum into ``rmax`` (H, W) uint8), then blur them
+    vertically (:func:`gauss_rows`, ``BORDER_REFLECT_101``) into ``Bg, Bb`` ((H, W) float32),
+    row by row, each row as soon as the Gaussian's support is linearised (still in cache).
+    Returns the largest raw green or blue value (0: a black frame)."""
+    H, W = img.shape[0], img.shape[1]
+    r = kh.size - 1
+    rows = np.empty(2 * r + 1, np.int64)
+    top = np.uint8(0)
+    loaded = 0
+    for y in range(H):
+        while loaded <= min(H - 1, y + r):
+            lg = Lg[loaded]
+            lb = Lb[loaded]
+            rm = rmax[loaded]
+            px = img[loaded]
+            for u in range(W):
+                G = px[u, 1]
+                B = px[u, 2]
+                lg[u] = lut[G]
+                lb[u] = lut[B]
+                rm[u] = max(G, B)
+            for u in range(W):
+                top = max(top, rm[u])
+            loaded += 1
+        for j in range(2 * r + 1):
+            rows[j] = reflect101(y - r + j, H)
+        gauss_rows(Lg, rows, kh, Bg[y])
+        gauss_rows(Lb, rows, kh, Bb[y])
+    return top
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def classify_frame(Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin, min_contrast,
+                   dark_level, saturation_level, labels, reason, gn, bn, contrast):
+    """Stages 2-3 of the fast path in one pass over the rows: colour balance with the global scales
+    ``sg, sb``, ``d``, its local threshold, local min/max and the per-pixel rules.
+
+    Bit-identical to :func:`classify_image` on ``Bg * sg, Bb * sb`` (same row primitives); only the
+    ``d`` rows of the threshold window live in a ring buffer.  Lg, Lb, rmax, Bg, Bb : (H, W) from
+    :func:`blur_frame` (linear, raw maximum, blurred).  thr_w : odd local
+    threshold window (0: global threshold).  Writes labels, reason, gn, bn, contrast ((H, W)).
+    """
+    H, W = Bg.shape
+    t = thr_w // 2
+    h = norm_w // 2
+    nD = 2 * t + 2
+    f32 = np.float32
+    Dr = np.empty((nD, W), f32)
+    rows = np.empty(nD, np.int64)
+    nt = W + 2 * t
+    Pd = np.empty(nt, f32)
+    tda = np.empty(nt, f32)
+    tdb = np.empty(nt, f32)
+    thr = np.zeros(W, f32)
+    n = W + 2 * h
+    Pg = np.empty(n, f32)
+    Pb = np.empty(n, f32)
+    LOg = np.empty(n, f32)
+    HIg = np.empty(n, f32)
+    LOb = np.empty(n, f32)
+    HIb = np.empty(n, f32)
+    s0 = np.empty(n, f32)   # separate scratch rows (rows of one 2-D array would not vectorise)
+    s1 = np.empty(n, f32)
+    s2 = np.empty(n, f32)
+    s3 = np.empty(n, f32)
+    s4 = np.empty(n, f32)
+    s5 = np.empty(n, f32)
+    s6 = np.empty(n, f32)
+    s7 = np.empty(n, f32)
+    s8 = np.empty(n, f32)
+    s9 = np.empty(n, f32)
+    s10 = np.empty(n, f32)
+    s11 = np.empty(n, f32)
+    ta = np.empty(n, f32)
+    tb = np.empty(n, f32)
+    lo_g = np.empty(W, f32)
+    hi_g = np.empty(W, f32)
+    lo_b = np.empty(W, f32)
+    hi_b = np.empty(W, f32)
+    raw_hi = np.empty(W, f32)
+    s_thr = f32(1.0 / (thr_w * thr_w)) if thr_w > 0 else f32(0.0)
+    s_norm = f32(1.0 / norm_w)
+    for y in range(H + t):
+        if y < H:
+            ratio_row(Bg[y], Bb[y], sg, sb, Dr[y % nD])
+        v = y - t
+        if v < 0:
+            continue
+        if t > 0:
+            column_sums(Dr, v, H, thr_w, nD, rows, Pd)
+            pad_reflect101(Pd, t, W)
+            box_row(Pd, thr_w, tda, tdb, s_thr, thr)
+        g = Bg[v]
+        b = Bb[v]
+        raw_g = Lg[v]
+        raw_b = Lb[v]
+        # _minmax_smooth_row of both channels, in shared loops
+        pg = Pg[h:h + W]
+        pb = Pb[h:h + W]
         for u in range(W):
-            rg = max(hi_g[v, u] - lo_g[v, u], np.float32(1e-3))
-            rb = max(hi_b[v, u] - lo_b[v, u], np.float32(1e-3))
-            ig = np.float32(1.0) / rg
-            ib = np.float32(1.0) / rb
-            x = (g[v, u] - lo_g[v, u]) * ig
-            y = (b[v, u] - lo_b[v, u]) * ib
-            gn[v, u] = x
-            bn[v, u] = y
-            c = min(rg / max(hi_g[v, u], np.float32(1e-3)), rb / max(hi_b[v, u], np.float32(1e-3)))
-            contrast[v, u] = c
-            lab = GREEN if d[v, u] > thr[v, u] else BLUE
-            hn = max(x, y)
-            ln = min(x, y)
-            if x > cyan_level and y > cyan_level:
-                lab = CYAN
-            elif hn > cyan_level and ln > min_level:
-                lab = NONE  # the edge of a cyan marker: neither colour
-            diff_raw = (raw_g[v, u] - lo_g[v, u]) * ig - (raw_b[v, u] - lo_b[v, u]) * ib
-            r = 0
-            if c < min_contrast or (lab == GREEN and diff_raw < -raw_margin) or (lab == BLUE and diff_raw > raw_margin):
-                r = 3
-            mod = max(rg, rb)
-            if mod < dark_level or hn < min_level or raw_hi[v, u] - min(lo_g[v, u], lo_b[v, u]) < np.float32(0.5) * mod:
-                r = 1
-            if raw_max[v, u] >= saturation_level:
-                r = 2
-            if r != 0:
-                lab = NONE
-            labels[v, u] = lab
-            reason[v, u] = r
-    return labels, reason, gn, bn, contrast
+            pg[u] = g[u]
+            pb[u] = b[u]
+        pad_replicate(Pg, h, W)
+        pad_replicate(Pb, h, W)
+        _slide_minmax2(Pg, Pb, norm_w, s0, s1, s2, s3, s4, s5, s6, s7, LOg, HIg, LOb, HIb, h)
+        pad_replicate(LOg, h, W)
+        pad_replicate(HIg, h, W)
+        pad_replicate(LOb, h, W)
+        pad_replicate(HIb, h, W)
+        if 8 <= norm_w < 16:
+            _box4_8to15(LOg, HIg, LOb, HIb, norm_w, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11, s_norm,
+                        lo_g, hi_g, lo_b, hi_b)
+        else:
+            _box4(LOg, HIg, LOb, HIb, norm_w, s0, s1, s2, s3, s4, s5, s6, s7, s_norm, lo_g, hi_g, lo_b, hi_b)
+        _raw_hi_row(raw_g, raw_b, norm_w, Pg, ta, tb, raw_hi)
+        classify_row(g, b, Dr[v % nD], thr, lo_g, hi_g, lo_b, hi_b, raw_g, raw_b, raw_hi, rmax[v], cyan_level,
+                     min_level, raw_margin, min_contrast, dark_level, saturation_level,
+                     labels[v], reason[v], gn[v], bn[v], contrast[v])
 
 
 @njit(cache=True, nogil=True)
-def finish_pixels(reason, labels, region_in, relative, column_rel, inconsistent, reg_shift, reg_indexed, reg_margin,
-                  contrast, stripe_px, n_stripes, min_contrast):
+def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, reg_shift, reg_indexed, reg_margin,
+                  contrast, stripe_px, n_stripes, min_contrast, n_codes):
     """Final masks, absolute stripe, column and confidence (see :func:`gbscan.decode.decode`).
 
     Reason codes as in ``gbscan.decode``: 0 ok, 4 isolated, 5 inconsistent, 6 unindexed,
-    7 no boundary (1-3 come from ``reason``).  One-pixel unlabelled gaps between two pixels of
-    one region join that region.  A reported pixel must lie within one stripe of its colour
-    run's stripe, inside the pattern, and agree within half a stripe with a reported vertical
-    neighbour.
+    7 no boundary (other non-zero codes come from ``reason`` and are kept).  One-pixel unlabelled
+    gaps between two pixels of one region join that region (``region`` is updated in place).
+    A reported pixel must lie within one stripe of its colour run's stripe, inside the pattern,
+    and agree within half a stripe with a reported vertical neighbour.  ``column_rel`` is set
+    to NaN in place outside regions.
+
+    One pass over the rows (the vertical check lags one row behind, with the previous row's
+    provisional result kept in a row buffer).  Returns mask (uint8), column (float32), stripe
+    (int32), confidence (float32) (H, W) and the count of each mask code (n_codes,) int64.
     """
     H, W = reason.shape
-    mask = reason.copy()
-    region = region_in.copy()
-    column = np.full((H, W), np.nan, np.float32)
-    stripe = np.full((H, W), -1, np.int32)
-    conf = np.zeros((H, W), np.float32)
+    mask = np.empty((H, W), np.uint8)
+    column = np.empty((H, W), np.float32)
+    stripe = np.empty((H, W), np.int32)
+    conf = np.empty((H, W), np.float32)
+    counts = np.zeros(n_codes, np.int64)
+    prev_ok = np.zeros(W, np.bool_)
+    prev_col = np.zeros(W, np.float32)
+    cur_ok = np.zeros(W, np.bool_)
+    cur_col = np.zeros(W, np.float32)
     w = stripe_px
-    for v in range(H):
-        for u in range(W):
-            if mask[v, u] != 0:
-                continue
-            r = region[v, u]
-            gap = False
-            if r < 0 and labels[v, u] == NONE and 0 < u < W - 1:
-                rl = region_in[v, u - 1]
-                if rl >= 0 and rl == region_in[v, u + 1]:
-                    r = rl
-                    region[v, u] = r
-                    gap = True
-            if r < 0:
-                mask[v, u] = 4
-                continue
-            if not reg_indexed[r]:
-                mask[v, u] = 6
-                continue
-            if inconsistent[v, u]:
-                mask[v, u] = 5
-                continue
-            c = column_rel[v, u]
-            if np.isnan(c):
-                mask[v, u] = 7
-                continue
-            c = c + reg_shift[r] * w
-            if gap:
-                k = int(np.floor((c + 0.5) / w))
-            else:
-                k = relative[v, u] + reg_shift[r]
-            if abs(c - (k * w + 0.5 * (w - 1))) > w or k < 0 or k >= n_stripes:
-                mask[v, u] = 5
-                continue
-            column[v, u] = c
-            stripe[v, u] = k
-    # vertical continuity: a reported pixel needs a reported vertical neighbour within w/2
     half = 0.5 * w
-    lonely = np.zeros((H, W), np.bool_)
-    for v in range(H):
+    inv_mc = 1.0 / max(min_contrast, 1e-3)
+    for v in range(H + 1):
+        if v < H:  # provisional result of row v
+            for u in range(W):
+                m = reason[v, u]
+                mask[v, u] = m
+                if m != 0:
+                    continue
+                r = region[v, u]
+                gap = False
+                if r < 0 and labels[v, u] == NONE and 0 < u < W - 1:
+                    rl = region[v, u - 1]
+                    # (u - 1 was not joined: a joined pixel has no region on both sides)
+                    if rl >= 0 and rl == region[v, u + 1]:
+                        r = rl
+                        region[v, u] = r
+                        gap = True
+                if r < 0:
+                    mask[v, u] = 4
+                    continue
+                if not reg_indexed[r]:
+                    mask[v, u] = 6
+                    continue
+                if inconsistent[v, u]:
+                    mask[v, u] = 5
+                    continue
+                c = column_rel[v, u]
+                if np.isnan(c):
+                    mask[v, u] = 7
+                    continue
+                c = c + reg_shift[r] * w
+                if gap:
+                    k = int(np.floor((c + 0.5) / w))
+                else:
+                    k = relative[v, u] + reg_shift[r]
+                if abs(c - (k * w + 0.5 * (w - 1))) > w or k < 0 or k >= n_stripes:
+                    mask[v, u] = 5
+                    continue
+                column[v, u] = c
+                stripe[v, u] = k
+        f = v - 1
+        if f < 0:
+            continue
+        # row f: vertical continuity against the provisional rows f - 1 and f + 1, then final values
         for u in range(W):
-            if mask[v, u] != 0:
-                continue
-            c = column[v, u]
-            ok = False
-            if v > 0 and mask[v - 1, u] == 0 and abs(column[v - 1, u] - c) <= half:
-                ok = True
-            if not ok and v + 1 < H and mask[v + 1, u] == 0 and abs(column[v + 1, u] - c) <= half:
-                ok = True
-            lonely[v, u] = not ok
-    for v in range(H):
+            cur_ok[u] = mask[f, u] == 0
+            cur_col[u] = column[f, u]
         for u in range(W):
-            if lonely[v, u]:
-                mask[v, u] = 5
-    for v in range(H):
+            m = mask[f, u]
+            if m == 0:
+                c = cur_col[u]
+                ok = f > 0 and prev_ok[u] and abs(prev_col[u] - c) <= half
+                if not ok and f + 1 < H and mask[f + 1, u] == 0 and abs(column[f + 1, u] - c) <= half:
+                    ok = True
+                if not ok:
+                    m = 5
+                    mask[f, u] = 5
+            if m != 0:
+                column[f, u] = np.nan
+                stripe[f, u] = -1
+                conf[f, u] = 0.0
+            else:
+                cc = min(max((contrast[f, u] - min_contrast) * inv_mc, 0.0), 1.0)
+                conf[f, u] = 0.25 + 0.75 * cc * reg_margin[region[f, u]]
+            if m < n_codes:
+                counts[m] += 1
+            if region[f, u] < 0:
+                column_rel[f, u] = np.nan
         for u in range(W):
-            if mask[v, u] != 0:
-                column[v, u] = np.nan
-                stripe[v, u] = -1
-                continue
-            cc = min(max((contrast[v, u] - min_contrast) / max(min_contrast, 1e-3), 0.0), 1.0)
-            conf[v, u] = 0.25 + 0.75 * cc * reg_margin[region[v, u]]
-    return mask, column, stripe, conf, region
+            prev_ok[u] = cur_ok[u]
+            prev_col[u] = cur_col[u]
+    return mask, column, stripe, conf, counts
 
 
 @njit(cache=True, nogil=True)
@@ -814,3 +1620,465 @@ def spacing_cuts(j_x, seg_j0, seg_j1, ratio):
                 prev_s = sp
             prev_x = x
     return cut
+
+
+@njit(cache=True, nogil=True)
+def marker_conflicts(labels, relative, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_ub, seg_region,
+                     reg_offset, reg_indexed, is_marker, min_run_px, min_events):
+    """Pixels of indexed regions whose own row contradicts the region's marker placement.
+
+    A region's offset is fixed by all of its markers at once; a segment that crossed a depth edge
+    where the stripes of two surfaces happen to line up (the colour sequence stays valid) carries
+    part of the other surface with a shift of an even number of stripes.  Along each segment the
+    runs are checked against the region's offset: a cyan run of at least ``min_run_px`` pixels on
+    a marker stripe *agrees*, a cyan run on a non-marker stripe or a green/blue run of at least
+    ``min_run_px`` pixels on a marker stripe *disagrees*.  A stretch between two agreeing runs (or
+    the segment's end) holding at least ``min_events`` disagreements is rejected, the agreeing
+    runs at its ends included (the jump lies somewhere in between, and the boundary next to it
+    belongs to neither surface), with the unlabelled gaps between them.  A shifted stretch shows
+    two kinds of disagreement (its markers where none belong, green/blue where the region's
+    markers belong); a single one is usually a marker missed at a rim.  ``is_marker`` (n_stripes,) bool; stripes outside it are neutral.
+    Returns the rejected spans, (n, 3) int32 rows ``(v, u_first, u_last)`` (no image-size output).
+    """
+    H, W = labels.shape
+    spans = np.empty((16, 3), np.int32)
+    n_sp = 0
+    n_st = is_marker.shape[0]
+    cap = W + 2
+    ev = np.zeros(cap, np.int8)     # per run: +1 agree, -1 disagree, 0 neutral
+    ra = np.zeros(cap, np.int32)    # run start / end pixel
+    rb = np.zeros(cap, np.int32)
+    for s in range(seg_row.shape[0]):
+        k = seg_region[s]
+        if k < 0 or not reg_indexed[k]:
+            continue
+        v = seg_row[s]
+        nr = 0
+        any_bad = False
+        a = seg_u0[s]
+        for j in range(seg_j0[s], seg_j1[s] + 1):
+            b = j_ua[j] if j < seg_j1[s] else seg_u1[s]
+            ra[nr] = a
+            rb[nr] = b
+            e = 0
+            lab = labels[v, a]        # a run starts with its colour (spikes and gaps merged inside)
+            rr = relative[v, a]
+            if b - a + 1 >= min_run_px and lab != 0:
+                A = rr + reg_offset[k]
+                if 0 <= A < n_st:
+                    if lab == CYAN:
+                        e = 1 if is_marker[A] else -1
+                    elif is_marker[A]:
+                        e = -1
+            ev[nr] = e
+            if e < 0:
+                any_bad = True
+            nr += 1
+            if j < seg_j1[s]:
+                a = j_ub[j]
+        if not any_bad:
+            continue
+        for i in range(nr):
+            if ev[i] >= 0:
+                continue
+            lo = i
+            while lo > 0 and ev[lo] != 1:
+                lo -= 1
+            hi = i
+            while hi < nr - 1 and ev[hi] != 1:
+                hi += 1
+            n_bad = 0
+            for m in range(lo, hi + 1):
+                if ev[m] < 0:
+                    n_bad += 1
+            if n_bad < min_events:   # one odd run is noise (a marker missed at a rim, a cyan glint)
+                continue
+            if n_sp == spans.shape[0]:
+                grown = np.empty((2 * n_sp, 3), np.int32)
+                grown[:n_sp] = spans
+                spans = grown
+            spans[n_sp, 0] = v                  # unlabelled gaps too (finish_pixels may fill them)
+            spans[n_sp, 1] = ra[lo]
+            spans[n_sp, 2] = rb[hi]
+            n_sp += 1
+    return spans[:n_sp].copy()
+
+
+@njit(cache=True, nogil=True)
+def check_vertical(labels, relative, region):
+    """Paper step 7 kernel: (H, W) bool, a pixel whose upper or lower neighbour has the same
+    colour (not NONE) and region (>= 0) but another relative index."""
+    H, W = labels.shape
+    bad = np.zeros((H, W), np.bool_)
+    for v in range(1, H):
+        for u in range(W):
+            lab = labels[v, u]
+            k = region[v, u]
+            if (lab != 0 and k >= 0 and labels[v - 1, u] == lab and region[v - 1, u] == k
+                    and relative[v, u] != relative[v - 1, u]):
+                bad[v, u] = True
+                bad[v - 1, u] = True
+    return bad
+
+
+@njit(cache=True, nogil=True)
+def _abs_row(column_rel, region, reg_off, v, out, weight):
+    # absolute columns of row v into out (W,) (0 where none) and weight (W,) (1 where one): a
+    # column of an indexed region; an unlabelled gap pixel inside a segment (region -1 with a
+    # column) takes its left neighbour's region
+    W = out.shape[0]
+    for u in range(W):
+        k = region[v, u]
+        if k < 0 and u > 0:
+            k = region[v, u - 1]
+        c = np.float32(np.nan)
+        if k >= 0:
+            c = column_rel[v, u] + reg_off[k]
+        if c == c:
+            out[u] = c
+            weight[u] = 1.0
+        else:
+            out[u] = 0.0
+            weight[u] = 0.0
+
+
+@njit(cache=True, nogil=True)
+def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, rim_code, pull_out):
+    """Mask ``rim_code`` into ``reason`` (H, W) uint8, in place where it is 0, where a column is
+    unreliable near a silhouette or bend (see :func:`gbscan.decode.rim_rule`); returns the count.
+
+    column_rel (H, W) float32 relative columns; region (H, W) int32; reg_off (n_regions,) float32
+    absolute offset (projector px) per region, NaN where the region is not indexed.
+    * *pull*: ``|M[c] - c| > max_pull_px`` (0: off), M the vertical mean over rows
+      ``v - half_px .. v + half_px`` of the finite absolute columns (a box with the variance of the
+      decoder's along-stripe Gaussian when ``half_px ~ sqrt(3) sigma``), by running sums.
+    * *end*: at most ``end_px`` (0: off) px from the end of the pixel's row stretch of columns
+      and as close to a pixel whose reason is 1..3 (no signal: dark, saturated, low contrast).
+    ``pull_out`` (H, W) float32 receives ``M[c] - c`` (pass a (0, 0) array to skip).
+    Row-major with per-image-column accumulators; no image-size temporaries.
+    """
+    H, W = column_rel.shape
+    want = pull_out.shape[0] == H and pull_out.shape[1] == W
+    n_ring = 2 * half_px + 2
+    ring = np.empty((n_ring, W), np.float32)   # absolute columns of rows v - half_px - 1 .. v + half_px
+    ring_w = np.empty((n_ring, W), np.float32)  # ... 1 where there is one
+    num = np.zeros(W, np.float64)
+    den = np.zeros(W, np.float64)
+    n_rim = 0
+    for v in range(min(half_px, H)):
+        _abs_row(column_rel, region, reg_off, v, ring[v % n_ring], ring_w[v % n_ring])
+        for u in range(W):
+            num[u] += ring[v % n_ring, u]
+            den[u] += ring_w[v % n_ring, u]
+    for v in range(H):
+        va = v + half_px                      # row entering the window
+        vb = v - half_px - 1                  # row leaving it
+        if va < H:
+            _abs_row(column_rel, region, reg_off, va, ring[va % n_ring], ring_w[va % n_ring])
+            if max_pull_px > 0:
+                rin = ring[va % n_ring]
+                win = ring_w[va % n_ring]
+                for u in range(W):                # branch-free running sums
+                    num[u] += rin[u]
+                    den[u] += win[u]
+        if vb >= 0 and max_pull_px > 0:
+            rout = ring[vb % n_ring]
+            wout = ring_w[vb % n_ring]
+            for u in range(W):
+                num[u] -= rout[u]
+                den[u] -= wout[u]
+        row = ring[v % n_ring]
+        roww = ring_w[v % n_ring]
+        for u in range(W):
+            if roww[u] == 0:
+                continue
+            c = row[u]
+            rim = False
+            if max_pull_px > 0:
+                dev = num[u] - c * den[u]          # den * pull, no division in the common case
+                if want:
+                    pull_out[v, u] = dev / den[u]
+                rim = abs(dev) > max_pull_px * den[u]
+            if not rim and end_px > 0:
+                # at the end of the row stretch and next to no signal (reason 1..3), both
+                # within end_px; the common case (a column on both sides) exits at once
+                if (u >= end_px and u + end_px < W and column_rel[v, u - 1] == column_rel[v, u - 1]
+                        and column_rel[v, u + 1] == column_rel[v, u + 1] and end_px == 1):
+                    pass
+                else:
+                    at_end = u - end_px < 0 or u + end_px >= W
+                    near_dark = False
+                    for x in range(max(u - end_px, 0), min(u + end_px, W - 1) + 1):
+                        cx = reason[v, x]
+                        if x != u and cx >= 1 and cx <= 3:
+                            near_dark = True
+                        if column_rel[v, x] != column_rel[v, x]:
+                            at_end = True
+                    rim = at_end and near_dark
+            if rim and reason[v, u] == 0:
+                reason[v, u] = rim_code
+                n_rim += 1
+    return n_rim
+
+
+# -- cleaning an organised point map (gbscan.clean) ---------------------------------------------
+# Conventions of gbscan.clean: ``xyz`` (H, W, 3) float mm; ``reason`` (H, W) uint8 per-pixel code,
+# 0 = still in play.  A filter writes its ``code`` on the pixels it rejects (in place) and returns
+# how many; its decisions are all made on the pixels in play when it starts, never on its own
+# partial result, so the order of the loops is irrelevant.
+
+@njit(cache=True, nogil=True)
+def clean_pointwise(xyz, confidence, use_confidence, min_confidence, min_z, max_z, reason,
+                    code_no_plane, code_confidence, code_depth):
+    """Non-finite points, low confidence, z outside ``[min_z, max_z]``; counts (3,) in that order.
+
+    A NaN confidence counts as 0; ``use_confidence`` False skips the confidence test.
+    """
+    H, W = reason.shape
+    n = np.zeros(3, np.int64)
+    for v in range(H):
+        for u in range(W):
+            if reason[v, u] != 0:
+                continue
+            x = xyz[v, u, 0]
+            y = xyz[v, u, 1]
+            z = xyz[v, u, 2]
+            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                reason[v, u] = code_no_plane
+                n[0] += 1
+            elif use_confidence and not (confidence[v, u] >= min_confidence):
+                reason[v, u] = code_confidence
+                n[1] += 1
+            elif not (min_z <= z <= max_z):
+                reason[v, u] = code_depth
+                n[2] += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _padded_depth(xyz, reason):
+    """(H + 2, W + 2) float64 depth of the in-play pixels, NaN elsewhere and on the border."""
+    H, W = reason.shape
+    zp = np.full((H + 2, W + 2), np.nan)
+    for v in range(H):
+        for u in range(W):
+            if reason[v, u] == 0:
+                zp[v + 1, u + 1] = xyz[v, u, 2]
+    return zp
+
+
+@njit(cache=True, nogil=True)
+def _reject(drop, n_drop, reason, zp, code):
+    """Write ``code`` on the ``n_drop`` flat pixel indices ``drop`` and take them out of ``zp``."""
+    W = reason.shape[1]
+    for i in range(n_drop):
+        v, u = divmod(drop[i], W)
+        reason[v, u] = code
+        zp[v + 1, u + 1] = np.nan
+    return n_drop
+
+
+@njit(cache=True, nogil=True)
+def _spike_pass(zp, reason, tol, min_pairs, code):
+    """Drop points supported by fewer than ``min_pairs`` of their four opposite 8-neighbour pairs
+    (a pair supports when both are in play and ``|mean depth - z| <= tol * z``; NaN never does)."""
+    H, W = reason.shape
+    drop = np.empty(H * W, np.int64)
+    n = 0
+    for v in range(H):
+        a = zp[v]
+        b = zp[v + 1]
+        c = zp[v + 2]
+        for u in range(W):
+            z = b[u + 1]
+            if reason[v, u] != 0:
+                continue
+            lim = tol * z
+            pairs = 0
+            if abs(0.5 * (b[u] + b[u + 2]) - z) <= lim:
+                pairs += 1
+            if abs(0.5 * (a[u + 1] + c[u + 1]) - z) <= lim:
+                pairs += 1
+            if abs(0.5 * (a[u] + c[u + 2]) - z) <= lim:
+                pairs += 1
+            if abs(0.5 * (a[u + 2] + c[u]) - z) <= lim:
+                pairs += 1
+            if pairs < min_pairs:
+                drop[n] = v * W + u
+                n += 1
+    return _reject(drop, n, reason, zp, code)
+
+
+@njit(cache=True, nogil=True)
+def _jump_pass(zp, reason, max_jump, code):
+    """Drop both pixels of every in-play 4-neighbour pair whose depths differ by more than
+    ``max_jump`` times the nearer depth (pairs with a NaN never do)."""
+    H, W = reason.shape
+    mark = np.zeros((H + 2, W + 2), np.bool_)
+    for v in range(H):
+        b = zp[v + 1]
+        c = zp[v + 2]
+        for u in range(W):
+            z = b[u + 1]
+            r = b[u + 2]
+            if abs(z - r) > max_jump * min(z, r):
+                mark[v + 1, u + 1] = True
+                mark[v + 1, u + 2] = True
+            d = c[u + 1]
+            if abs(z - d) > max_jump * min(z, d):
+                mark[v + 1, u + 1] = True
+                mark[v + 2, u + 1] = True
+    drop = np.empty(H * W, np.int64)
+    n = 0
+    for v in range(H):
+        for u in range(W):
+            if mark[v + 1, u + 1] and reason[v, u] == 0:
+                drop[n] = v * W + u
+                n += 1
+    return _reject(drop, n, reason, zp, code)
+
+
+@njit(cache=True, nogil=True)
+def clean_spikes(xyz, reason, tol, min_pairs, code):
+    """The spike filter alone (see :func:`_spike_pass`); returns how many it rejected."""
+    return _spike_pass(_padded_depth(xyz, reason), reason, tol, min_pairs, code)
+
+
+@njit(cache=True, nogil=True)
+def clean_jumps(xyz, reason, max_jump, code):
+    """The depth-discontinuity filter alone (see :func:`_jump_pass`)."""
+    return _jump_pass(_padded_depth(xyz, reason), reason, max_jump, code)
+
+
+@njit(cache=True, nogil=True)
+def clean_spikes_jumps(xyz, reason, tol, min_pairs, code_spike, max_jump, code_jump):
+    """Spikes, then depth discontinuities on what is left, sharing one depth map; (n_spike, n_jump)."""
+    zp = _padded_depth(xyz, reason)
+    n_spike = _spike_pass(zp, reason, tol, min_pairs, code_spike)
+    n_jump = _jump_pass(zp, reason, max_jump, code_jump)
+    return n_spike, n_jump
+
+
+@njit(cache=True, nogil=True)
+def grid_normals_into(xyz, reason, step, out, min_cos, code):
+    """Unit normals of the in-play pixels into ``out`` (H, W, 3) float32, NaN elsewhere.
+
+    Tangents over ``step`` px along rows and columns, central where both sides are in play,
+    one-sided otherwise; n = t_v x t_u, oriented so that n . p < 0 (towards the camera).
+    A pixel is usable when in play and its three coordinates are finite.  With ``code`` != 0,
+    also the grazing filter: pixels whose normal makes ``cos < min_cos`` with the ray towards
+    the camera get ``code`` (the normals of all pixels use the in-play set of the start).
+    Returns how many pixels it rejected.
+    """
+    H, W = reason.shape
+    s = step
+    ok = np.empty((H, W), np.bool_)
+    for v in range(H):
+        for u in range(W):
+            ok[v, u] = (reason[v, u] == 0 and np.isfinite(xyz[v, u, 0]) and np.isfinite(xyz[v, u, 1])
+                        and np.isfinite(xyz[v, u, 2]))
+    n_bad = 0
+    for v in range(H):
+        for u in range(W):
+            good = ok[v, u]
+            if good:
+                f = u + s < W and ok[v, u + s]
+                b = u - s >= 0 and ok[v, u - s]
+                fv = v + s < H and ok[v + s, u]
+                bv = v - s >= 0 and ok[v - s, u]
+                good = (f or b) and (fv or bv)
+            if not good:
+                out[v, u, 0] = np.nan
+                out[v, u, 1] = np.nan
+                out[v, u, 2] = np.nan
+                continue
+            ua = u + s if f else u
+            ub = u - s if b else u
+            va = v + s if fv else v
+            vb = v - s if bv else v
+            tux = np.float64(xyz[v, ua, 0]) - np.float64(xyz[v, ub, 0])
+            tuy = np.float64(xyz[v, ua, 1]) - np.float64(xyz[v, ub, 1])
+            tuz = np.float64(xyz[v, ua, 2]) - np.float64(xyz[v, ub, 2])
+            tvx = np.float64(xyz[va, u, 0]) - np.float64(xyz[vb, u, 0])
+            tvy = np.float64(xyz[va, u, 1]) - np.float64(xyz[vb, u, 1])
+            tvz = np.float64(xyz[va, u, 2]) - np.float64(xyz[vb, u, 2])
+            nx = tvy * tuz - tvz * tuy
+            ny = tvz * tux - tvx * tuz
+            nz = tvx * tuy - tvy * tux
+            norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+            if not norm > 0.0:
+                out[v, u, 0] = np.nan
+                out[v, u, 1] = np.nan
+                out[v, u, 2] = np.nan
+                continue
+            px = np.float64(xyz[v, u, 0])
+            py = np.float64(xyz[v, u, 1])
+            pz = np.float64(xyz[v, u, 2])
+            inv = 1.0 / norm if nx * px + ny * py + nz * pz <= 0 else -1.0 / norm
+            out[v, u, 0] = nx * inv
+            out[v, u, 1] = ny * inv
+            out[v, u, 2] = nz * inv
+            if code != 0 and _grazing(out[v, u, 0], out[v, u, 1], out[v, u, 2], px, py, pz, min_cos):
+                reason[v, u] = code
+                n_bad += 1
+    return n_bad
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _grazing(nx, ny, nz, px, py, pz, min_cos):
+    """cos(normal, ray to the camera) = -n.p / |p| < min_cos, without a square root or a division;
+    False for a NaN normal."""
+    c = -(nx * px + ny * py + nz * pz)  # cos * |p| (unit normal)
+    if not c == c:
+        return False
+    if min_cos <= 0.0:
+        return c < 0.0 and c * c > min_cos * min_cos * (px * px + py * py + pz * pz)
+    return c < 0.0 or c * c < min_cos * min_cos * (px * px + py * py + pz * pz)
+
+
+@njit(cache=True, nogil=True)
+def clean_grazing(xyz, normals, reason, min_cos, code):
+    """Drop in-play points whose given normal makes ``cos < min_cos`` with the ray towards the
+    camera (points without a normal are kept)."""
+    H, W = reason.shape
+    n = 0
+    for v in range(H):
+        for u in range(W):
+            if reason[v, u] != 0:
+                continue
+            if _grazing(np.float64(normals[v, u, 0]), np.float64(normals[v, u, 1]), np.float64(normals[v, u, 2]),
+                        np.float64(xyz[v, u, 0]), np.float64(xyz[v, u, 1]), np.float64(xyz[v, u, 2]), min_cos):
+                reason[v, u] = code
+                n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def clean_small_labels(labels, n_labels, reason, min_px, code):
+    """Drop in-play pixels whose component (``labels`` (H, W) int32, 0 = background, as
+    ``cv2.connectedComponents`` gives) has fewer than ``min_px`` pixels."""
+    H, W = reason.shape
+    area = np.zeros(n_labels, np.int64)
+    for v in range(H):
+        for u in range(W):
+            area[labels[v, u]] += 1
+    n = 0
+    for v in range(H):
+        for u in range(W):
+            k = labels[v, u]
+            if reason[v, u] == 0 and k > 0 and area[k] < min_px:
+                reason[v, u] = code
+                n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def mask_rejected(reason, xyz, normals):
+    """NaN into ``xyz`` and ``normals`` (H, W, 3) wherever ``reason`` != 0 (in place)."""
+    H, W = reason.shape
+    for v in range(H):
+        for u in range(W):
+            if reason[v, u] != 0:
+                for c in range(3):
+                    xyz[v, u, c] = np.nan
+                    normals[v, u, c] = np.nan

@@ -129,8 +129,10 @@ def triangulate(rays: np.ndarray, column: np.ndarray, planes: PlaneTable, *,
     if max_extrapolate_px is None:
         max_extrapolate_px = planes.spacing_px
     if compiled and planes.n_planes >= 3:
+        # float32 columns (the decoder's) are read as they are: no float64 copy of the frame
+        cdt = column.dtype if column.dtype in (np.float32, np.float64) else np.float64
         _triangulate_kernel(np.ascontiguousarray(rays.reshape(-1, 3), dtype=np.float64),
-                            np.ascontiguousarray(column.reshape(-1), dtype=np.float64),
+                            np.ascontiguousarray(column.reshape(-1), dtype=cdt),
                             planes.column, planes.normal, planes.d, planes.lut, planes.lut0,
                             float(np.sin(np.radians(min_angle_deg))),
                             float(min(max_extrapolate_px, 2 * planes.spacing_px)), out.reshape(-1, 3))
@@ -192,19 +194,20 @@ def ray_depths(r: np.ndarray, x: np.ndarray, planes: PlaneTable, *, min_angle_de
     return s
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _triangulate_kernel(rays, column, col, nor, dd, lut, lut0, min_dot, max_extra, out):  # pragma: no cover
-    """Per-pixel version of :func:`ray_depths` (see there); writes points or NaN into ``out``."""
+    """Per-pixel version of :func:`ray_depths` (see there); writes points or NaN into ``out``.
+    ``column`` float32 or float64 (promoted per pixel)."""
     P = col.size
     lo_lim = col[0] - max_extra
     hi_lim = col[P - 1] + max_extra
     n_lut = lut.size
     for p in range(column.size):
-        x = column[p]
-        out[p, 0] = np.nan
-        out[p, 1] = np.nan
-        out[p, 2] = np.nan
+        x = np.float64(column[p])
         if not (x >= lo_lim and x <= hi_lim):  # also rejects NaN
+            out[p, 0] = np.nan
+            out[p, 1] = np.nan
+            out[p, 2] = np.nan
             continue
         # i: last plane with col[i] <= x, clipped to [0, P-2]: table lookup, then step forward
         k = int(x - lut0)
@@ -224,7 +227,8 @@ def _triangulate_kernel(rays, column, col, nor, dd, lut, lut0, min_dot, max_extr
         e20 = D2 * N0 - D0 * N2
         e21 = D2 * N1 - D1 * N2
         s = (b * D1 * e20 - a * D0 * e21) / (b * N1 * e20 - a * N0 * e21)
-        if abs(N0) >= min_dot and abs(N1) >= min_dot and s > 0.0 and s < np.inf:
-            out[p, 0] = s * rx
-            out[p, 1] = s * ry
-            out[p, 2] = s * rz
+        ok = (abs(N0) >= min_dot) & (abs(N1) >= min_dot) & (s > 0.0) & (s < np.inf)
+        s = s if ok else np.nan
+        out[p, 0] = s * rx
+        out[p, 1] = s * ry
+        out[p, 2] = s * rz

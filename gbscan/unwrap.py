@@ -42,7 +42,12 @@ The seven steps (paper wording -> function):
    upper or lower neighbour has the same colour and region but another index is flagged.
 
 No step optimises globally; each decision uses only a pixel's own row and its neighbour rows.
-Absolute indexing (beyond the paper) is :func:`index_regions`.
+Absolute indexing (beyond the paper) is :func:`index_regions`; :func:`marker_conflicts` then finds
+stretches of rows whose own markers contradict their region's offset (a surface welded in across a
+horizontal depth edge where the stripes happen to line up), which the decoder drops as unindexed.
+Components the markers cannot index alone (too small, too few markers) are indexed through the
+reported pixels around them by :func:`link_components` when the projector column continues into
+them for exactly one offset (many agreeing votes, none elsewhere, markers consistent).
 """
 from __future__ import annotations
 
@@ -51,7 +56,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import GBError
-from .pattern import NONE, PatternSpec
+from .pattern import PatternSpec
 
 
 @dataclass(frozen=True)
@@ -75,6 +80,20 @@ class UnwrapParams:
     index_margin : the best offset's mismatch must be lower than the runner-up's by this
         fraction of the region's marker evidence.
     max_mismatch : largest acceptable mismatch of the best offset, as a fraction of the evidence.
+    conflict_run_px : a run of at least this many px whose marker/non-marker colour contradicts its
+        region's offset is a disagreement (:func:`marker_conflicts`).
+    conflict_events : disagreements a stretch of a row between agreeing markers must hold to be
+        made unindexed.
+    link_votes : a component that cannot be indexed alone (too small, too few markers) is indexed
+        through the reported pixels around it when at least this many column-continuity votes
+        agree on its offset (:func:`link_components`; 0 disables).
+    link_lines : the agreeing votes must come from at least this many distinct rows/columns.
+    link_tol_px : a vote agrees when its residual is within this many projector px of an offset
+        (a quarter of the 16 px period of an even stripe shift by default).
+    link_agree_frac : fraction of all of the component's votes that must agree on one offset.
+    link_gap_px : unreported pixels a horizontal vote may reach across.
+    link_marker_frac : largest fraction of the component's pixels whose colour may contradict
+        the markers at the linked offset (cyan on a non-marker stripe, green/blue on a marker).
     """
 
     n_ref_pixels: int = 4
@@ -90,15 +109,29 @@ class UnwrapParams:
     min_markers: int = 2
     index_margin: float = 0.25
     max_mismatch: float = 0.05
+    conflict_run_px: int = 2
+    conflict_events: int = 2
+    link_votes: int = 8
+    link_lines: int = 3
+    link_tol_px: float = 2.0
+    link_agree_frac: float = 0.95
+    link_gap_px: int = 2
+    link_marker_frac: float = 0.05
 
     def __post_init__(self):
-        for name in ("n_ref_pixels", "n_ref_rows", "min_region_px", "min_markers"):
+        for name in ("n_ref_pixels", "n_ref_rows", "min_region_px", "min_markers", "conflict_run_px",
+                     "conflict_events"):
             if int(getattr(self, name)) < 1:
                 raise GBError(f"UnwrapParams.{name} must be >= 1, got {getattr(self, name)}")
         if not 0.5 <= float(self.agree_frac) <= 1.0:
             raise GBError(f"UnwrapParams.agree_frac must be in [0.5, 1], got {self.agree_frac}")
         if int(self.max_gap_px) < 0 or int(self.spike_px) < 0:
             raise GBError("UnwrapParams.max_gap_px and spike_px must be >= 0")
+        if int(self.link_votes) < 0 or int(self.link_lines) < 1 or int(self.link_gap_px) < 0:
+            raise GBError("UnwrapParams.link_votes and link_gap_px must be >= 0, link_lines >= 1")
+        if not (0 < float(self.link_tol_px) < 4.0) or not 0.5 <= float(self.link_agree_frac) <= 1.0:
+            raise GBError(f"UnwrapParams.link_tol_px must be in (0, 4) px (a quarter period: 2) and link_agree_frac "
+                          f"in [0.5, 1], got {self.link_tol_px}, {self.link_agree_frac}")
 
 
 @dataclass
@@ -190,6 +223,7 @@ class Unwrapped:
     believable: np.ndarray
     isolated: np.ndarray
     stats: dict = field(default_factory=dict)
+    seg_root: np.ndarray | None = None  # (n_seg,) int32 union-find root of every segment (components)
 
 
 # -- step 1 -------------------------------------------------------------------------------------
@@ -399,16 +433,11 @@ def check_pixels(labels: np.ndarray, relative: np.ndarray, region: np.ndarray) -
     A pixel is flagged when its upper or lower neighbour has the same colour and the same
     region but a different index (stripes are continuous across rows).
     """
-    H, W = labels.shape
-    bad = np.zeros((H, W), bool)
-    if H < 2:
-        return bad
-    lab_ok = (labels[1:] == labels[:-1]) & (labels[1:] != NONE)
-    same = lab_ok & (region[1:] == region[:-1]) & (region[1:] >= 0)
-    diff = same & (relative[1:] != relative[:-1])
-    bad[1:] |= diff
-    bad[:-1] |= diff
-    return bad
+    from . import kernels
+
+    return kernels.check_vertical(np.ascontiguousarray(labels, dtype=np.uint8),
+                                  np.ascontiguousarray(relative, dtype=np.int32),
+                                  np.ascontiguousarray(region, dtype=np.int32))
 
 
 # -- the seven steps together -------------------------------------------------------------------
@@ -472,7 +501,8 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
         "pixels_inconsistent": int(incons.sum()),
     }
     return Unwrapped(relative, region, incons, segs, edges, seg_region, P, region_px,
-                     root_conf[kept].astype(np.int64) // 2 if segs.n else np.zeros(0, np.int64), bel, isolated, stats)
+                     root_conf[kept].astype(np.int64) // 2 if segs.n else np.zeros(0, np.int64), bel, isolated, stats,
+                    np.asarray(root, dtype=np.int32))
 
 
 # -- absolute indexing (beyond the paper) -------------------------------------------------------
@@ -582,3 +612,182 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
             out.indexed[k] = True
             out.why[k] = "ok"
     return out
+
+
+def marker_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, pattern: PatternSpec,
+                     params: UnwrapParams = UnwrapParams()) -> np.ndarray:
+    """Stretches of rows in indexed regions that their own markers contradict.
+
+    :func:`index_regions` fixes one offset per region from all of its markers.  At a horizontal
+    depth edge the stripes of two surfaces may line up (stripe period in the camera barely
+    depends on depth), so a row segment -- or a vertical link -- can weld a piece of the other
+    surface into the region, shifted by an even number of stripes.  Its markers then sit where
+    the region expects none and the region's markers fall on green/blue: along every segment, a
+    stretch between agreeing markers holding ``conflict_events`` such contradictions is rejected
+    (see :func:`gbscan.kernels.marker_conflicts`).  The decoder reports these pixels unindexed.
+
+    Returns (n, 3) int32 spans ``(row, u_first, u_last)`` (inclusive; may overlap), empty for the
+    pure pattern; :func:`spans_mask` turns them into an (H, W) bool image.
+    """
+    from . import kernels
+
+    n_reg = int(idx.indexed.size)
+    if not pattern.markers or n_reg == 0 or not idx.indexed.any():
+        return np.zeros((0, 3), np.int32)
+    is_marker = np.zeros(pattern.n_stripes, np.bool_)
+    is_marker[pattern.marker_indices()] = True
+    sg = un.segments
+    return kernels.marker_conflicts(np.ascontiguousarray(labels, dtype=np.uint8), un.relative, sg.row,
+                                    sg.u0, sg.u1, sg.j0, sg.j1, sg.j_ua, sg.j_ub,
+                                    un.seg_region.astype(np.int32), idx.offset.astype(np.int64),
+                                    idx.indexed.astype(np.bool_), is_marker, int(params.conflict_run_px),
+                                    int(params.conflict_events))
+
+
+def spans_mask(spans: np.ndarray, shape) -> np.ndarray:
+    """(H, W) bool image of row spans ``(row, u_first, u_last)`` (inclusive), e.g. from
+    :func:`marker_conflicts`."""
+    out = np.zeros(shape, bool)
+    for v, a, b in np.asarray(spans, dtype=np.int64).reshape(-1, 3):
+        out[v, a:b + 1] = True
+    return out
+
+
+# -- indexing through neighbours (beyond the paper) ----------------------------------------------
+@dataclass
+class Links:
+    """Result of :func:`link_components`.
+
+    seg_region : (n_seg,) int32 region of every segment after linking (``un.seg_region`` plus the
+        linked components: a linked kept region keeps its id, a linked small component gets a new
+        id ``n_regions + i``).
+    offset, indexed : (n_regions + n_new,) int64 absolute offset (stripes) and bool, the
+        indexing's arrays extended and updated with the linked components.
+    linked : (n_regions + n_new,) bool, region indexed through its neighbours.
+    votes, dissent : (n_regions + n_new,) int64 agreeing and other votes of linked regions.
+    stats : counts (components tried, linked, pixels linked, refused by votes / markers).
+    """
+
+    seg_region: np.ndarray
+    offset: np.ndarray
+    indexed: np.ndarray
+    linked: np.ndarray
+    votes: np.ndarray
+    dissent: np.ndarray
+    stats: dict
+
+
+def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel: np.ndarray, col_abs,
+                    pattern: PatternSpec, params: UnwrapParams = UnwrapParams()) -> Links:
+    """Index components that cannot be indexed alone through the reported pixels around them.
+
+    Components are the union-find roots of the unwrapping (``un.seg_root``) whose segments are
+    in no indexed region: regions too small to be kept, regions without enough markers.
+    ``col_rel`` (H, W) float32 is every segment's projector column relative to its component
+    (NaN none); ``col_abs`` (H, W) float32 the absolute column of the pixels that will be
+    reported (NaN elsewhere; rim-pulled pixels should be left out: they bias the votes), or a
+    function returning it (called only when some component has columns).
+
+    The projector column is continuous on a surface: a candidate pixel next to reported pixels
+    (vertically: the two pixels above or below; horizontally: the two nearest in its row past at
+    most ``link_gap_px`` unreported pixels) predicts its absolute column by linear extrapolation
+    (:func:`gbscan.kernels.link_votes`); ``prediction - relative column`` is a vote for the
+    component's offset, an even number of stripes (multiples of ``2 * stripe_px`` px).  A
+    component is linked when at least ``link_votes`` votes from ``link_lines`` distinct rows or
+    columns agree within ``link_tol_px`` on one offset, they are at least ``link_agree_frac`` of
+    all its votes (across a depth edge the continuation fails: votes scatter or sit between
+    offsets), the offset keeps its stripes inside the pattern, and its colours agree with the
+    markers there (at most ``link_marker_frac`` contradicting pixels).  Otherwise the component
+    stays dropped: a guess is never made.  Where two surfaces meet with their stripes lined up
+    (an even shift) and no marker nearby, continuity cannot tell them apart: that is the residual
+    risk, the same as the unwrapping's own vertical links.
+    """
+    from . import kernels
+
+    n_reg = int(idx.indexed.size)
+    segs = un.segments
+    w = float(pattern.stripe_px)
+    stats = {"components_tried": 0, "components_linked": 0, "pixels_linked": 0, "refused_votes": 0,
+             "refused_markers": 0}
+    empty = Links(un.seg_region.astype(np.int32), idx.offset.astype(np.int64).copy(), idx.indexed.copy(),
+                  np.zeros(n_reg, bool), np.zeros(n_reg, np.int64), np.zeros(n_reg, np.int64), stats)
+    if params.link_votes <= 0 or segs.n == 0 or un.seg_root is None:
+        return empty
+    root = un.seg_root.astype(np.int32)
+    sreg = un.seg_region
+    seg_indexed = np.zeros(segs.n, bool)
+    has = sreg >= 0
+    seg_indexed[has] = idx.indexed[sreg[has]]
+    seg_comp = np.where(seg_indexed, -1, root).astype(np.int32)
+    comp, cr, n_fin = kernels.component_pixels(segs.seg, seg_comp, np.ascontiguousarray(col_rel, dtype=np.float32))
+    if n_fin == 0:
+        return empty
+    if callable(col_abs):
+        col_abs = col_abs()
+    vc, vr, vl = kernels.link_votes(comp, cr, np.ascontiguousarray(col_abs, dtype=np.float32), int(params.link_gap_px))
+    stats["components_tried"] = int(np.unique(vc).size)
+    if vc.size == 0:
+        return empty
+    period = 2.0 * w
+    k = np.round(vr / period).astype(np.int64)
+    good = np.abs(vr - k * period) <= float(params.link_tol_px)
+    n_all = np.bincount(vc, minlength=segs.n)
+    # agreeing votes per (component, offset) and their distinct lines; the best offset per component
+    gc, gk, gl = vc[good].astype(np.int64), k[good], vl[good].astype(np.int64)
+    accept_c = np.zeros(0, np.int64)
+    accept_k = accept_n = accept_c
+    if gc.size:
+        kk0 = gk - gk.min()
+        span = int(kk0.max()) + 1
+        pair = gc * span + kk0
+        pairs, cnt = np.unique(pair, return_counts=True)
+        H1 = int(segs.seg.shape[0]) + 1  # lines are in [-H, W): a key per (pair, line)
+        line_key = np.unique(pair * (H1 + int(segs.seg.shape[1])) + (gl + H1))
+        _, n_lines = np.unique(line_key // (H1 + int(segs.seg.shape[1])), return_counts=True)  # as ``pairs``
+        pc, pk = pairs // span, pairs % span + gk.min()
+        o = np.lexsort((-cnt, pc))
+        first = np.r_[True, np.diff(pc[o]) != 0]
+        b = o[first]
+        ok = ((cnt[b] >= params.link_votes) & (n_lines[b] >= params.link_lines)
+              & (cnt[b] >= params.link_agree_frac * n_all[pc[b]]))
+        accept_c, accept_k, accept_n = pc[b][ok], pk[b][ok], cnt[b][ok]
+    stats["refused_votes"] = stats["components_tried"] - int(accept_c.size)
+    # the markers at the linked offset must agree with the component's colours
+    if accept_c.size:
+        is_marker = np.zeros(pattern.n_stripes, np.bool_)
+        if pattern.markers:
+            is_marker[pattern.marker_indices()] = True
+        take = np.zeros(segs.n, np.bool_)
+        take[accept_c] = True
+        shift = np.zeros(segs.n, np.int64)
+        shift[accept_c] = 2 * accept_k
+        n_px, n_bad = kernels.component_marker_counts(comp, np.ascontiguousarray(un.relative, dtype=np.int32),
+                                                      np.ascontiguousarray(labels, dtype=np.uint8), shift, take,
+                                                      is_marker)
+        fits = n_bad[accept_c] <= params.link_marker_frac * n_px[accept_c]
+        stats["refused_markers"] = int((~fits).sum())
+        accept_c, accept_k, accept_n = accept_c[fits], accept_k[fits], accept_n[fits]
+    if not accept_c.size:
+        return empty
+    # a linked kept region keeps its id; a linked small component gets a new one
+    comp_region = np.full(segs.n, -1, np.int64)
+    reg_of_root = np.full(segs.n, -1, np.int64)
+    reg_of_root[root[has & ~seg_indexed]] = sreg[has & ~seg_indexed]
+    old = reg_of_root[accept_c]
+    n_new = int((old < 0).sum())
+    comp_region[accept_c] = np.where(old >= 0, old, n_reg + np.cumsum(old < 0) - 1)
+    n_tot = n_reg + n_new
+    seg_region = sreg.astype(np.int32).copy()
+    mv = (seg_comp >= 0) & (comp_region[np.maximum(seg_comp, 0)] >= 0)
+    seg_region[mv] = comp_region[seg_comp[mv]]
+    r_acc = comp_region[accept_c]
+    offset = np.r_[idx.offset.astype(np.int64), np.zeros(n_new, np.int64)]
+    indexed = np.r_[idx.indexed, np.zeros(n_new, bool)]
+    linked = np.zeros(n_tot, bool)
+    votes = np.zeros(n_tot, np.int64)
+    dissent = np.zeros(n_tot, np.int64)
+    offset[r_acc], indexed[r_acc], linked[r_acc] = 2 * accept_k, True, True
+    votes[r_acc], dissent[r_acc] = accept_n, n_all[accept_c] - accept_n
+    stats["components_linked"] = int(accept_c.size)
+    stats["pixels_linked"] = int((segs.u1[mv] - segs.u0[mv] + 1).sum())
+    return Links(seg_region, offset, indexed, linked, votes, dissent, stats)

@@ -14,16 +14,29 @@ own buffers are not traced).  Peers on the same sizes:
 
 Threads are limited to one (``cv2.setNumThreads``, ``numba.set_num_threads``) for the
 single-core figures.  The first decode compiles/loads the numba kernels and is not timed.
+
+Also printed: CPU milliseconds of the calling thread (less sensitive than wall time to other
+processes on the machine), minor page faults per frame (fresh output pages: on this virtual
+machine a fault costs about 2 us, i.e. 1-4 ms per frame in a process whose malloc returns freed
+memory to the system; here glibc's adaptive thresholds have settled and reuse it), and peak
+memory in bytes per pixel, measured from a released fast-path workspace
+(``gbscan.decode.release_workspace``) so that it counts.  The stage names are decode's
+``stats['ms']`` keys (on the fast path "input" is validation only and "blur" includes the
+linearisation).  The script measures the gbscan of its own checkout.
 """
 from __future__ import annotations
 
 import argparse
+import resource
 import sys
 import time
 import tracemalloc
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's gbscan, not another install
 
 
 def log(msg: str) -> None:
@@ -59,6 +72,18 @@ def median_ms(f, runs: int) -> tuple[float, object]:
         out = f()
         ts.append((time.perf_counter() - t) * 1e3)
     return float(np.median(ts)), out
+
+
+def cpu_ms_and_faults(f, runs: int) -> tuple[float, float]:
+    """Median CPU ms of this thread and minor page faults per call."""
+    f()
+    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    ts = []
+    for _ in range(runs):
+        t = time.thread_time()
+        f()
+        ts.append((time.thread_time() - t) * 1e3)
+    return float(np.median(ts)), (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0) / runs
 
 
 def peak_mb(f) -> float:
@@ -127,7 +152,7 @@ def main(argv=None) -> int:
     import cv2
     import numba
 
-    from gbscan.decode import decode
+    from gbscan.decode import decode, release_workspace
     from gbscan.pattern import PatternSpec
 
     cv2.setNumThreads(args.threads)
@@ -145,9 +170,12 @@ def main(argv=None) -> int:
             stage_runs.append(decode(img, spec).stats["ms"])
         total, sm = median_ms(lambda: decode(img, spec), args.runs)
         stages = {k: float(np.median([s[k] for s in stage_runs])) for k in stage_runs[0]}
+        cpu, faults = cpu_ms_and_faults(lambda: decode(img, spec), args.runs)
+        release_workspace()
         mem = peak_mb(lambda: decode(img, spec))
         print(f"\n## {W}x{H}: gbscan decode  total {total:.2f} ms  (target {'3' if W <= 640 else '12'} ms)  "
-              f"peak numpy memory {mem:.1f} MB, reported {sm.valid.mean() * 100:.1f}% of pixels")
+              f"cpu {cpu:.2f} ms, {faults:.0f} page faults/frame, reported {sm.valid.mean() * 100:.1f}% of pixels")
+        print(f"   peak numpy memory {mem:.1f} MB = {mem * 2 ** 20 / (H * W):.0f} bytes/px (workspace included)")
         print("   stages: " + "  ".join(f"{k} {v:.2f}" for k, v in stages.items() if k != "total"))
         ftp = ftp_peer(img)
         t_ftp, _ = median_ms(ftp, max(3, args.runs // 3))

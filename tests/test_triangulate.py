@@ -113,6 +113,21 @@ def test_compiled_matches_numpy_reference(rig, calib):
     np.testing.assert_allclose(a[np.isfinite(a)], b[np.isfinite(b)], rtol=1e-12, atol=1e-9)
 
 
+def test_float32_columns_give_the_float64_result(rig, calib):
+    """The decoder's float32 columns go to the kernel as they are (promoted per pixel)."""
+    rng = np.random.default_rng(1)
+    rays = pixel_rays(rig.camera)[::3, ::3]
+    col = rng.uniform(-20, 1040, rays.shape[:2]).astype(np.float32)
+    col[rng.random(col.shape) < 0.2] = np.nan
+    table = PlaneTable.from_calibration(calib)
+    a = triangulate(rays, col, table)
+    b = triangulate(rays, col.astype(np.float64), table)
+    np.testing.assert_array_equal(a, b)
+    out = np.empty(rays.shape, np.float32)
+    triangulate(rays, col, table, out=out)
+    np.testing.assert_array_equal(out, a.astype(np.float32))
+
+
 def test_points_reproject_to_their_pixels_through_distortion(rig, calib):
     _, col, _ = truth(rig, planes=[tilted_plane(650.0)])
     xyz = triangulate(pixel_rays(rig.camera), col, PlaneTable.from_calibration(calib))

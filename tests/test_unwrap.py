@@ -118,3 +118,119 @@ def test_unwrap_rejects_bad_labels():
         uw.unwrap(np.zeros((4, 4, 3), np.uint8))
     with pytest.raises(GBError, match="agree_frac"):
         uw.UnwrapParams(agree_frac=0.2)
+
+
+def welded_image(spec: PatternSpec, rows_clean: int = 60, rows_welded: int = 3, jump: int = 20, shift: int = 12,
+                 n: int = 45, px: int = 3) -> np.ndarray:
+    """Stripes 0..n-1 (``px`` camera px each); in the last ``rows_welded`` rows the stripes from
+    ``jump`` on are those of another surface ``shift`` (even) stripes further: the colour sequence
+    stays valid and green/blue line up vertically -- only the markers tell."""
+    lab = spec.stripe_labels()
+    clean = np.repeat(lab[:n], px)
+    welded = np.repeat(np.concatenate([lab[:jump], lab[jump + shift:n + shift]]), px)
+    return np.ascontiguousarray(np.vstack([np.broadcast_to(clean, (rows_clean, clean.size)),
+                                           np.broadcast_to(welded, (rows_welded, welded.size))]).astype(np.uint8))
+
+
+def test_marker_conflicts_reject_a_welded_stretch_and_nothing_else():
+    spec = PatternSpec()
+    lab = welded_image(spec)
+    un = uw.unwrap(lab)
+    n_reg = un.region_px.size
+    idx = uw.index_regions(lab, un.relative, un.region, n_reg, spec)
+    # the weld is invisible to the unwrapping (one region) and to the region's marker fit
+    assert n_reg == 1 and idx.indexed[0] and idx.offset[0] == -un.relative[0, 0]
+    bad = uw.spans_mask(uw.marker_conflicts(lab, un, idx, spec), lab.shape)
+    absolute = un.relative + idx.offset[0]
+    truth = np.concatenate([np.arange(20), np.arange(32, 57)]).repeat(3)
+    wrong = absolute[60:] != truth[None]
+    assert wrong.any() and not bad[:60].any()            # clean rows untouched
+    assert bad[60:][wrong].all()                           # every wrongly indexed pixel is rejected
+    # the rejected stretch starts at the last marker that agrees (stripe 16), not earlier
+    assert not bad[60:, :16 * 3].any() and bad[60:, 16 * 3:20 * 3].all()
+    # the pure pattern has no evidence: nothing is rejected (the decoder reports relative only)
+    assert uw.marker_conflicts(lab, un, idx, PatternSpec(markers=False)).shape == (0, 3)
+
+
+def test_marker_conflicts_ignore_a_single_missed_marker():
+    """A marker that a row fails to show (e.g. at a rim) is one disagreement, not a shifted stretch."""
+    spec = PatternSpec()
+    lab = stripe_image(spec, 0, 45, rows=40)
+    lab[20, 16 * 3:17 * 3] = G if spec.stripe_labels()[15] == B else B  # marker 16 shown as its neighbours' colour
+    un = uw.unwrap(lab)
+    idx = uw.index_regions(lab, un.relative, un.region, un.region_px.size, spec)
+    assert idx.indexed.all()
+    assert uw.marker_conflicts(lab, un, idx, spec).shape == (0, 3)
+    # with one disagreement enough, that row's stretch around it goes
+    p1 = uw.UnwrapParams(conflict_events=1)
+    bad = uw.spans_mask(uw.marker_conflicts(lab, un, idx, spec, p1), lab.shape)
+    assert bad.any() and not np.delete(bad, 20, axis=0).any()
+    with pytest.raises(GBError, match="conflict_events"):
+        uw.UnwrapParams(conflict_events=0)
+
+
+def patch_scene(spec: PatternSpec, shift: int = 0, first: int = 10, n: int = 40, px: int = 3):
+    """Stripes ``first..first+n-1`` (``px`` camera px each, 40 rows) and their true columns; a patch
+    (rows 24-28, columns 0-26) is cut off by two dark rows above and a dark gap of 3 px to its right,
+    so it is a component too small to be kept (135 px).  With ``shift`` != 0 the patch shows the stripes of
+    another surface, ``shift`` stripes further (a depth edge)."""
+    lab = stripe_image(spec, first, n, px=px, rows=40)
+    lab[24:29, :27] = stripe_image(spec, first + shift, n, px=px, rows=5)[:, :27]
+    lab[22:24, :30] = NONE
+    lab[24:29, 27:30] = NONE
+    u = np.arange(lab.shape[1])
+    col = ((first + u // px) * spec.stripe_px + ((u % px) + 0.5) * spec.stripe_px / px - 0.5).astype(np.float32)
+    return np.ascontiguousarray(lab), np.broadcast_to(col, lab.shape)
+
+
+def linked(spec, lab, col_true, p):
+    u = uw.unwrap(lab, p)
+    idx = uw.index_regions(lab, u.relative, u.region, u.region_px.size, spec, p)
+    assert idx.indexed.all() and u.isolated[25, 5]
+    px = lab.shape[1] // 40
+    uu = np.arange(lab.shape[1])
+    # columns from the relative index (exact, as the decoder's interpolation gives on clean data)
+    frac = (((uu % px) + 0.5) * spec.stripe_px / px - 0.5).astype(np.float32)
+    col_rel = (u.relative * spec.stripe_px + frac).astype(np.float32)
+    off = np.r_[idx.offset, 0][np.where(u.region >= 0, u.region, idx.offset.size)]
+    col_abs = np.where(u.region >= 0, col_rel + off * spec.stripe_px, np.nan).astype(np.float32)
+    return u, idx, uw.link_components(lab, u, idx, np.where(lab > 0, col_rel, np.nan), col_abs, spec, p)
+
+
+def test_link_components_indexes_a_small_patch_through_its_neighbours():
+    spec = PatternSpec()
+    lab, col_true = patch_scene(spec)
+    p = uw.UnwrapParams(min_region_px=150, min_marker_px=5)
+    u, idx, lk = linked(spec, lab, col_true, p)
+    assert lk.stats["components_linked"] == 1 and lk.linked.sum() == 1
+    r = lk.seg_region[u.segments.seg[25, 5]]
+    assert r == idx.offset.size and lk.indexed[r]
+    # the linked offset is the true one: absolute index = relative + offset everywhere in the patch
+    patch = u.segments.seg >= 0
+    patch &= lk.seg_region[np.maximum(u.segments.seg, 0)] == r
+    truth = np.floor((col_true + 0.5) / spec.stripe_px).astype(np.int64)
+    np.testing.assert_array_equal((u.relative + lk.offset[r])[patch], truth[patch])
+    assert lk.votes[r] >= p.link_votes and lk.dissent[r] == 0
+    # disabled: nothing linked
+    off = uw.link_components(lab, u, idx, np.full(lab.shape, np.nan, np.float32), np.full(lab.shape, np.nan, np.float32),
+                             spec, uw.UnwrapParams(link_votes=0))
+    assert off.stats["components_linked"] == 0 and not off.linked.any()
+
+
+@pytest.mark.parametrize("shift", [5, 2, 4])
+def test_link_components_refuses_another_surface(shift):
+    """A patch showing another surface: an odd shift leaves the votes between offsets; an even one
+    lines the stripes up, and then the markers at the linked offset contradict the patch's colours."""
+    spec = PatternSpec()
+    lab, col_true = patch_scene(spec, shift=shift)
+    p = uw.UnwrapParams(min_region_px=150, min_marker_px=5)
+    u, idx, lk = linked(spec, lab, col_true, p)
+    assert lk.stats["components_linked"] == 0, lk.stats
+    assert lk.stats["refused_votes" if shift % 2 else "refused_markers"] >= 1
+
+
+def test_link_params_are_validated():
+    with pytest.raises(GBError, match="link_tol_px"):
+        uw.UnwrapParams(link_tol_px=5.0)
+    with pytest.raises(GBError, match="link_votes"):
+        uw.UnwrapParams(link_votes=-1)
