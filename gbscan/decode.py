@@ -498,6 +498,7 @@ def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: Patt
     segs = un.segments
     region, _ = kernels.paint_regions(segs.seg, segs.rel, lk.seg_region.astype(np.int32), un.seg_P.astype(np.int32))
     un.region = region
+    un.isolated = (segs.seg >= 0) & (region < 0)
     un.seg_region = lk.seg_region
     un.inconsistent = uw.check_pixels(cls.labels, un.relative, region)
     n_new = int(lk.offset.size)

@@ -16,7 +16,7 @@ from ..pattern import BLUE, CYAN, GREEN, NONE
 REASON_RGB = {
     "ok": (70, 170, 90), "dark": (25, 25, 25), "saturated": (250, 250, 250), "low_contrast": (120, 120, 120),
     "isolated": (240, 110, 200), "inconsistent": (230, 40, 40), "unindexed": (230, 160, 30),
-    "no_boundary": (90, 90, 200),
+    "no_boundary": (90, 90, 200), "rim": (40, 200, 230),
 }
 LABEL_RGB = {NONE: (0, 0, 0), GREEN: (0, 200, 0), BLUE: (40, 70, 255), CYAN: (0, 230, 230)}
 
