@@ -96,6 +96,9 @@ class CleanResult:
 
 
 # -- the filters -------------------------------------------------------------------------------
+# Each public filter is a thin wrapper around one compiled kernel of ``gbscan.kernels`` (which
+# works on a per-pixel reason map in place); :func:`clean` runs the same kernels on one shared
+# reason map, so a filter and the chain cannot disagree.
 def confidence_filter(confidence: np.ndarray, valid: np.ndarray, min_confidence: float):
     """Drop points whose decoder confidence (H, W) in [0, 1] is below ``min_confidence``."""
     return valid & (np.nan_to_num(confidence, nan=0.0) >= min_confidence), "low_confidence"
@@ -119,21 +122,11 @@ def outlier_filter(xyz: np.ndarray, valid: np.ndarray, tol: float = 0.002, min_p
     statistical outlier removal, without a k-d tree.  Points whose every pair has a missing side
     (isolated pixels, tips of one-pixel lines, some corners) are dropped too.
     """
-    z = _masked_depth(xyz, valid)
-    H, W = z.shape
-    pad = np.full((H + 2, W + 2), np.nan, np.float32)
-    pad[1:1 + H, 1:1 + W] = z
-    tolz = np.float32(tol) * z
-    pairs = np.zeros((H, W), np.uint8)
-    dev = np.empty((H, W), np.float32)
-    with np.errstate(invalid="ignore"):
-        for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
-            np.add(pad[1 + dy:1 + dy + H, 1 + dx:1 + dx + W], pad[1 - dy:1 - dy + H, 1 - dx:1 - dx + W], out=dev)
-            dev *= np.float32(0.5)
-            dev -= z
-            np.abs(dev, out=dev)
-            pairs += dev <= tolz  # NaN (a missing side) compares False
-    return valid & (pairs >= min_pairs), "outlier"
+    from . import kernels
+
+    xyz, reason = _points(xyz), _reason_map(valid, xyz)
+    kernels.clean_spikes(xyz, reason, float(tol), int(min_pairs), 1)
+    return reason == 0, "outlier"
 
 
 def discontinuity_filter(xyz: np.ndarray, valid: np.ndarray, max_jump: float = 0.01):
@@ -142,48 +135,53 @@ def discontinuity_filter(xyz: np.ndarray, valid: np.ndarray, max_jump: float = 0
     ``z`` is the nearer of the two depths.  Removes flying pixels (blends of foreground and
     background) and the one-pixel rims on either side of a depth edge.
     """
-    z = _masked_depth(xyz, valid)
-    bad = np.zeros(z.shape, bool)
-    with np.errstate(invalid="ignore"):
-        for a, b in ((z[:, 1:], z[:, :-1]), (z[1:, :], z[:-1, :])):
-            jump = np.abs(a - b) > max_jump * np.fmin(a, b)  # NaN pairs compare False
-            if a.shape[1] != z.shape[1]:
-                bad[:, 1:] |= jump
-                bad[:, :-1] |= jump
-            else:
-                bad[1:, :] |= jump
-                bad[:-1, :] |= jump
-    return valid & ~bad, "discontinuity"
+    from . import kernels
+
+    xyz, reason = _points(xyz), _reason_map(valid, xyz)
+    kernels.clean_jumps(xyz, reason, float(max_jump), 1)
+    return reason == 0, "discontinuity"
 
 
 def grazing_filter(xyz: np.ndarray, valid: np.ndarray, max_angle_deg: float = 80.0, step_px: int = 2,
                    normals: np.ndarray | None = None):
     """Drop points seen at more than ``max_angle_deg`` between viewing ray and surface normal.
 
-    Normals come from the grid (:func:`grid_normals`) unless given.  Points whose normal cannot
-    be estimated (no valid neighbours in either direction) are kept: they are isolated and left
-    to the other filters.
+    Normals come from the grid (:func:`grid_normals`) unless given ((H, W, 3), towards the
+    camera).  Points whose normal cannot be estimated (no valid neighbours in either direction)
+    are kept: they are isolated and left to the other filters.
     """
-    if normals is None:
-        normals = grid_normals(xyz, valid, step_px)
-    x, y, z = (np.asarray(xyz[..., c], np.float32) for c in range(3))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        dot = normals[..., 0] * x + normals[..., 1] * y + normals[..., 2] * z
-        cos = -dot / np.sqrt(x * x + y * y + z * z)
-        bad = cos < np.cos(np.radians(max_angle_deg))  # NaN (no normal) compares False
-    return valid & ~bad, "grazing"
+    from . import kernels
+
+    xyz, reason = _points(xyz), _reason_map(valid, xyz)
+    normals = grid_normals(xyz, valid, step_px) if normals is None else _points(normals, "normals")
+    if normals.shape != xyz.shape:
+        raise GBError(f"grazing_filter: normals {normals.shape} do not match xyz {xyz.shape}")
+    kernels.clean_grazing(xyz, normals, reason, float(np.cos(np.radians(max_angle_deg))), 1)
+    return reason == 0, "grazing"
 
 
 def cluster_filter(valid: np.ndarray, min_cluster_px: int):
     """Drop 4-connected components of ``valid`` smaller than ``min_cluster_px`` pixels."""
+    reason = (~np.asarray(valid, bool)).view(np.uint8)
+    _drop_small_components(reason, int(min_cluster_px), 1)
+    return reason == 0, "small_cluster"
+
+
+def _drop_small_components(reason: np.ndarray, min_px: int, code: int) -> int:
+    """Write ``code`` on the in-play pixels (``reason == 0``) of 4-connected components smaller
+    than ``min_px``; returns how many.  Labels by OpenCV (a few ms at 640x480 without the
+    statistics of ``connectedComponentsWithStats``), areas and marking in one compiled pass."""
     import cv2
 
-    if min_cluster_px <= 1 or not valid.any():
-        return valid.copy(), "small_cluster"
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(valid.view(np.uint8), connectivity=4)
-    small = stats[:, cv2.CC_STAT_AREA] < min_cluster_px
-    small[0] = True  # background label
-    return valid & ~small[labels], "small_cluster"
+    from . import kernels
+
+    if min_px <= 1:
+        return 0
+    inplay = (reason == 0).view(np.uint8)
+    n, labels = cv2.connectedComponents(inplay, connectivity=4, ltype=cv2.CV_32S)
+    if n <= 1:
+        return 0
+    return int(kernels.clean_small_labels(labels, n, reason, min_px, code))
 
 
 # -- normals -----------------------------------------------------------------------------------
@@ -191,54 +189,38 @@ def grid_normals(xyz: np.ndarray, valid: np.ndarray | None = None, step_px: int 
     """Unit normals (H, W, 3) float32 of an organised point map, oriented towards the camera.
 
     Tangents are differences over ``step_px`` pixels along rows and columns (central where both
-    sides are valid, one-sided otherwise); NaN where a tangent is missing.  Orientation:
-    ``n . p < 0`` (the normal faces the camera at the origin).  Works on the three coordinate
-    planes separately in float32 (fast, no (H, W, 3) temporaries).
+    sides are valid, one-sided otherwise); NaN where a tangent is missing or the point is not
+    valid/finite.  Orientation: ``n . p < 0`` (the normal faces the camera at the origin).
+    One compiled pass (:func:`gbscan.kernels.grid_normals_into`), float64 arithmetic.
     """
-    xyz = np.asarray(xyz)
-    comps = [np.array(xyz[..., c], dtype=np.float32) for c in range(3)]
-    if valid is not None:
-        for a in comps:
-            a[~valid] = np.nan
-    s = int(step_px)
-    tu = [_tangent(a, s, axis=1) for a in comps]
-    tv = [_tangent(a, s, axis=0) for a in comps]
-    # n = tv x tu: (down x right) points towards -z, i.e. towards the camera
-    n = np.empty(xyz.shape[:2] + (3,), np.float32)
-    n[..., 0] = tv[1] * tu[2] - tv[2] * tu[1]
-    n[..., 1] = tv[2] * tu[0] - tv[0] * tu[2]
-    n[..., 2] = tv[0] * tu[1] - tv[1] * tu[0]
-    nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-        # unit length, and the sign that makes n . p < 0
-        norm = np.where(nx * comps[0] + ny * comps[1] + nz * comps[2] > 0, -norm, norm)
-        n /= norm[..., None]
+    from . import kernels
+
+    xyz = _points(xyz)
+    if int(step_px) < 1:
+        raise GBError(f"grid_normals: step_px must be >= 1, got {step_px}")
+    n = np.empty(xyz.shape, np.float32)
+    kernels.grid_normals_into(xyz, _reason_map(valid, xyz), int(step_px), n, -np.inf, 0)
     return n
 
 
-def _tangent(a: np.ndarray, s: int, axis: int) -> np.ndarray:
-    """Finite difference of a (H, W) along ``axis`` over ``s`` px, central where possible."""
-    fwd = np.full_like(a, np.nan)
-    bwd = np.full_like(a, np.nan)
-    if axis == 1:
-        np.subtract(a[:, s:], a[:, :-s], out=fwd[:, :-s])
-        bwd[:, s:] = fwd[:, :-s]
-    else:
-        np.subtract(a[s:], a[:-s], out=fwd[:-s])
-        bwd[s:] = fwd[:-s]
-    one_sided = np.where(np.isnan(fwd), bwd, fwd)
-    central = fwd + bwd
-    return np.where(np.isnan(central), one_sided, central)
+def _points(xyz, what: str = "xyz") -> np.ndarray:
+    """An organised (H, W, 3) float32/float64 map (other dtypes become float64)."""
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 3 or xyz.shape[2] != 3:
+        raise GBError(f"clean: {what} must be an organised (H, W, 3) point map, got shape {xyz.shape}")
+    if xyz.dtype not in (np.float32, np.float64):
+        xyz = xyz.astype(np.float64)
+    return xyz
 
 
-def _finite(xyz: np.ndarray) -> np.ndarray:
-    """(H, W) bool: all three coordinates finite (faster than ``isfinite(xyz).all(-1)``)."""
-    return np.isfinite(xyz[..., 0] + xyz[..., 1] + xyz[..., 2])
-
-
-def _masked_depth(xyz: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    return np.where(valid, xyz[..., 2], np.nan).astype(np.float32)
+def _reason_map(valid, xyz) -> np.ndarray:
+    """(H, W) uint8, 0 where ``valid`` (all pixels when None), 1 elsewhere: a fresh array."""
+    if valid is None:
+        return np.zeros(xyz.shape[:2], np.uint8)
+    valid = np.asarray(valid, bool)
+    if valid.shape != xyz.shape[:2]:
+        raise GBError(f"clean: valid mask {valid.shape} does not match xyz {xyz.shape[:2]}")
+    return (~valid).view(np.uint8)
 
 
 # -- the whole chain ---------------------------------------------------------------------------
@@ -252,38 +234,42 @@ def clean(xyz: np.ndarray, confidence: np.ndarray | None = None, params: CleanPa
         ``no_plane``); pixels with a non-zero code stay rejected with that code.
 
     Returns a :class:`CleanResult`; ``counts``: ``no_plane`` (non-finite points), ``input``
-    (points entering the filters), points removed per filter in order, ``kept``.
+    (points entering the filters), points removed per filter in order, ``kept``.  Every filter
+    is one compiled pass over the grid on a shared reason map: a few ms per 640x480 frame.
     """
+    from . import kernels
+
     params = params or CleanParams()
-    xyz = np.asarray(xyz)
-    if xyz.ndim != 3 or xyz.shape[2] != 3:
-        raise GBError(f"clean: xyz must be an organised (H, W, 3) point map, got shape {xyz.shape}")
+    if not isinstance(params, CleanParams):
+        raise GBError(f"clean: params must be a CleanParams, got {type(params).__name__}")
+    xyz = _points(xyz)
     H, W = xyz.shape[:2]
-    finite = _finite(xyz)
     reason = np.zeros((H, W), np.uint8) if reason is None else np.array(reason, dtype=np.uint8)
     if reason.shape != (H, W):
         raise GBError(f"clean: reason map {reason.shape} does not match xyz {xyz.shape[:2]}")
-    no_plane = (reason == 0) & ~finite
-    reason[no_plane] = CODE["no_plane"]
-    valid = reason == 0
-    counts = {"no_plane": int(no_plane.sum()), "input": int(valid.sum())}
-
-    def apply(result):
-        nonlocal valid
-        kept, name = result
-        dropped = valid & ~kept
-        reason[dropped] = CODE[name]
-        counts[name] = int(dropped.sum())
-        valid = kept
-
-    if confidence is not None and params.min_confidence > 0:
-        apply(confidence_filter(confidence, valid, params.min_confidence))
-    apply(depth_range_filter(xyz, valid, params.min_depth_mm, params.max_depth_mm))
-    apply(outlier_filter(xyz, valid, params.outlier_tol, params.min_pairs))
-    apply(discontinuity_filter(xyz, valid, params.max_jump))
-    normals = grid_normals(xyz, valid, params.normal_step_px)
-    apply(grazing_filter(xyz, valid, params.max_angle_deg, normals=normals))
+    use_conf = confidence is not None and params.min_confidence > 0
+    if use_conf:
+        conf = np.asarray(confidence, dtype=np.float32)
+        if conf.shape != (H, W):
+            raise GBError(f"clean: confidence {conf.shape} does not match xyz {xyz.shape[:2]}")
+    else:
+        conf = np.zeros((1, 1), np.float32)
+    n_in = int(np.count_nonzero(reason == 0))
+    n_plane, n_conf, n_depth = (int(c) for c in kernels.clean_pointwise(
+        xyz, conf, use_conf, float(params.min_confidence), float(params.min_depth_mm),
+        float(params.max_depth_mm), reason, CODE["no_plane"], CODE["low_confidence"], CODE["depth_range"]))
+    counts = {"no_plane": n_plane, "input": n_in - n_plane}
+    if use_conf:
+        counts["low_confidence"] = n_conf
+    counts["depth_range"] = n_depth
+    n_spike, n_jump = kernels.clean_spikes_jumps(xyz, reason, float(params.outlier_tol), int(params.min_pairs),
+                                                 CODE["outlier"], float(params.max_jump), CODE["discontinuity"])
+    counts["outlier"], counts["discontinuity"] = int(n_spike), int(n_jump)
+    normals = np.empty((H, W, 3), np.float32)  # normals of what is left, and the grazing filter with them
+    counts["grazing"] = int(kernels.grid_normals_into(xyz, reason, int(params.normal_step_px), normals,
+                                                      float(np.cos(np.radians(params.max_angle_deg))), CODE["grazing"]))
     min_cluster = params.min_cluster_px if params.min_cluster_px is not None else (H * W) // 1000
-    apply(cluster_filter(valid, int(min_cluster)))
-    counts["kept"] = int(valid.sum())
-    return CleanResult(valid, reason, counts, normals)
+    counts["small_cluster"] = _drop_small_components(reason, int(min_cluster), CODE["small_cluster"])
+    kept = reason == 0
+    counts["kept"] = int(np.count_nonzero(kept))
+    return CleanResult(kept, reason, counts, normals)

@@ -38,6 +38,49 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None):
     ``suffix`` defaults to the destination's own (writers such as OpenCV and open3d pick the
     format from it).  Raises GBError if the destination folder is missing or not writable.
     """
+    with _atomic_path(path, suffix, sync=True) as tmp:
+        yield tmp
+
+
+@contextlib.contextmanager
+def atomic_path_unsynced(path: str | os.PathLike, suffix: str | None = None):
+    """:func:`atomic_path` without flushing the file to disk before the rename.
+
+    Every reader sees the whole file or none of it, as long as the system runs; after a power
+    failure or a kernel crash the file may be missing or empty.  For bulk writers that make
+    their files durable together (:func:`fsync_paths`) before recording them anywhere, so that
+    the write does not wait for the disk (``gbscan batch``: workers write, the parent syncs
+    before the manifest lists the frame).
+    """
+    with _atomic_path(path, suffix, sync=False) as tmp:
+        yield tmp
+
+
+def fsync_paths(paths) -> None:
+    """Flush the given files to disk, then their folders (each once); missing files are skipped."""
+    folders = set()
+    for p in paths:
+        p = Path(p)
+        try:
+            fd = os.open(p, os.O_RDONLY)
+        except FileNotFoundError:
+            continue
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        folders.add(p.parent if str(p.parent) else Path("."))
+    for d in folders:
+        with contextlib.suppress(OSError):  # not every file system can sync a folder
+            fd = os.open(d, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+
+
+@contextlib.contextmanager
+def _atomic_path(path, suffix, sync: bool):
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
@@ -51,8 +94,9 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None):
         yield Path(tmp)
         if not Path(tmp).exists() or Path(tmp).stat().st_size == 0:
             raise GBError(f"writing {path} produced no data")
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
+        if sync:
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; outputs get the usual mode
         os.replace(tmp, path)
     finally:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .calibfile import Calibration, load_calibration
-from .clean import CODE, REASONS, CleanParams, clean, grid_normals
+from .clean import CODE, REASONS, CleanParams, clean
 from .errors import GBError
 from .pattern import PatternSpec
 
@@ -40,7 +40,8 @@ class Scan:
     reason : (H, W) uint8 code of why a pixel has no point, 0 = kept (``gbscan.clean.REASONS``).
     counts : points removed per step, in order (``not_decoded``, ``no_plane``, filters...),
         plus ``pixels`` and ``kept``.
-    timings_ms : milliseconds per stage (decode, triangulate, clean, normals, total).
+    timings_ms : milliseconds per stage: decode, triangulate, clean (the filters and the grid
+        normals the grazing filter needs), normals (NaN-ing the rejected pixels' xyz and normals), total.
     stripe : (H, W) int32 absolute stripe index from the decoder (-1 none) or None.
     stripemap : the decoder's :class:`gbscan.decode.StripeMap` or None.
     """
@@ -216,6 +217,7 @@ class Scanner:
         decoded : (H, W) bool pixels the decoder reported (default: finite column); the others
             are counted as ``not_decoded``.
         """
+        from . import kernels
         from .triangulate import triangulate
 
         W, H = self.size
@@ -223,35 +225,32 @@ class Scanner:
         if column.shape != (H, W):
             raise GBError(f"column map is {column.shape[::-1]} but the camera is {W}x{H}")
         t0 = time.perf_counter()
-        finite = np.isfinite(column)
-        if decoded is None:
-            decoded = finite
-        decoded = decoded & finite
-        conf = (np.ones((H, W), np.float32) if confidence is None
-                else np.where(decoded, np.asarray(confidence, np.float32), 0).astype(np.float32))
+        decoded = np.isfinite(column) if decoded is None else (np.asarray(decoded, bool) & np.isfinite(column))
+        if confidence is None:
+            conf = np.ones((H, W), np.float32)
+        else:
+            conf = np.asarray(confidence, np.float32)
+            if conf.shape != (H, W):
+                raise GBError(f"confidence map is {conf.shape[::-1]} but the camera is {W}x{H}")
+            conf = np.where(decoded, conf, np.float32(0))
         xyz = np.empty((H, W, 3), np.float32)
         triangulate(self.rays, np.where(decoded, column, np.nan), self.planes,
                     min_angle_deg=self.min_angle_deg, out=xyz)
         t1 = time.perf_counter()
-        reason = np.where(decoded, 0, CODE["not_decoded"]).astype(np.uint8)
-        counts = {"pixels": H * W, "not_decoded": int((~decoded).sum())}
-        normals = None
+        reason = (~decoded).view(np.uint8) * np.uint8(CODE["not_decoded"])  # 0 = in play
+        counts = {"pixels": H * W, "not_decoded": int(np.count_nonzero(reason))}
         if clean:
             res = _clean(xyz, conf if confidence is not None else None, self.clean_params, reason)
-            reason = res.reason
+            reason, normals = res.reason, res.normals  # normals: computed before the grazing filter
             counts.update({k: v for k, v in res.counts.items() if k != "input"})
-            normals = res.normals  # computed before the last filter, which removes whole small pieces
-        else:
-            bad = (reason == 0) & ~np.isfinite(xyz).all(-1)
-            reason[bad] = CODE["no_plane"]
-            counts["no_plane"] = int(bad.sum())
-            counts["kept"] = int((reason == 0).sum())
-        valid = reason == 0
-        xyz[~valid] = np.nan
+        else:  # only the points triangulation could not make
+            counts["no_plane"] = int(kernels.clean_pointwise(xyz, conf, False, 0.0, -np.inf, np.inf, reason,
+                                                             CODE["no_plane"], 0, 0)[0])
+            counts["kept"] = int(np.count_nonzero(reason == 0))
+            normals = np.empty((H, W, 3), np.float32)
+            kernels.grid_normals_into(xyz, reason, int(self.clean_params.normal_step_px), normals, -np.inf, 0)
         t2 = time.perf_counter()
-        if normals is None:
-            normals = grid_normals(xyz, valid, self.clean_params.normal_step_px)
-        normals[~valid] = np.nan
+        kernels.mask_rejected(reason, xyz, normals)  # NaN wherever there is no point
         t3 = time.perf_counter()
         timings = {"triangulate": (t1 - t0) * 1e3, "clean": (t2 - t1) * 1e3, "normals": (t3 - t2) * 1e3,
                    "total": (t3 - t0) * 1e3}

@@ -26,6 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment's install points at
+    sys.path.insert(0, str(ROOT))
+
 
 def render_sequence(n_unique: int, supersample: int = 1, seed: int = 0) -> list[np.ndarray]:
     """``n_unique`` 640x480 RGB frames: a 100 mm sphere moving left to right 650 mm away, before a wall."""
@@ -98,18 +102,25 @@ def main(argv=None) -> int:
         proc: Processor = ScannerProcessor(calib_path)
         results = {}
 
-        def bench(name, src_path, **kw):
+        def bench(name, src_path, cluster_pids=(), **kw):
             out = tmp / f"out_{len(results)}"
+            c0, o0 = _cpu_s(cluster_pids), os.times()
             with open_frames(src_path) as src:
                 s = run_batch(src, proc, out, progress=False, **kw)
+            c1, o1 = _cpu_s(cluster_pids), os.times()
             rows = read_manifest(s.manifest).values()
             cpu = np.mean([float(r["cpu_ms"]) for r in rows])
             wall = np.mean([float(r["time_ms"]) for r in rows])
+            n = max(1, s.ok + s.failed)
+            parent = 1e3 * ((o1.user - o0.user) + (o1.system - o0.system)) / n
+            extra = f"parent {parent:.1f} ms CPU/frame"
+            if cluster_pids:
+                extra += f", Dask processes beyond the tasks {1e3 * (c1 - c0) / n - cpu:.1f} ms CPU/frame"
             results[name] = s.steady_frames_per_s
             print(f"{name:42s} {1e3 / s.steady_frames_per_s:7.1f} ms/frame  {s.steady_frames_per_s:6.1f} frames/s  "
                   f"({s.ok} ok, {s.failed} failed; {s.frames_per_s:.1f} frames/s incl. "
                   f"{s.first_result_s:.1f} s start-up; per frame in a worker: wall {wall:.0f} ms, "
-                  f"CPU {cpu:.0f} ms; load {os.getloadavg()[0]:.1f})")
+                  f"CPU {cpu:.0f} ms; {extra}; load {os.getloadavg()[0]:.1f})", flush=True)
 
         bench("local 1 worker, folder, worker reads", folder, workers=1, read_in="worker")
         bench("local 2 workers, folder, worker reads", folder, workers=2, read_in="worker")
@@ -121,14 +132,35 @@ def main(argv=None) -> int:
 
             with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                               dashboard_address=None) as cluster:
-                bench("dask LocalCluster 2 workers, folder", folder, scheduler=cluster.scheduler_address)
-                bench("dask LocalCluster 2 workers, video", video, scheduler=cluster.scheduler_address)
+                import psutil
+
+                pids = [p.pid for p in psutil.Process().children(recursive=True)]  # nannies + workers
+                with open_frames(folder) as src:  # warm the workers (set-up, compilation) outside the figures
+                    run_batch(src, proc, tmp / "warm", progress=False, stop=2, scheduler=cluster.scheduler_address)
+                bench("dask LocalCluster 2 workers, folder", folder, pids, scheduler=cluster.scheduler_address)
+                bench("dask LocalCluster 2 workers, video", video, pids, scheduler=cluster.scheduler_address)
         one = results["local 1 worker, folder, worker reads"]
         print(f"scaling 2 vs 1 local workers: {results['local 2 workers, folder, worker reads'] / one:.2f}x")
         if not args.no_dask:
             print(f"scaling dask 2 workers vs 1 local worker: "
                   f"{results['dask LocalCluster 2 workers, folder'] / one:.2f}x")
     return 0
+
+
+def _cpu_s(pids) -> float:
+    """CPU seconds (user + system) used so far by the processes ``pids`` (those still alive)."""
+    if not pids:
+        return 0.0
+    import psutil
+
+    total = 0.0
+    for pid in pids:
+        try:
+            t = psutil.Process(pid).cpu_times()
+            total += t.user + t.system
+        except psutil.Error:
+            pass
+    return total
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ and on its load: run it on a quiet machine.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import subprocess
 import sys
@@ -21,6 +22,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment's install points at
+    sys.path.insert(0, str(ROOT))
 
 
 def rig_of_size(width: int, height: int):
@@ -94,11 +99,12 @@ def bench_size(width: int, height: int, scene: str, repeats: int, workdir: Path)
     cal = save_calibration(workdir / f"calib_{width}x{height}.yaml", calib)
     base = [sys.executable, "-m", "gbscan.cli", "scan", str(img), "--calib", str(cal),
             "-o", str(workdir / "cloud.ply")]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
     for label, extra in (("command", []), ("command --mesh", ["--mesh", str(workdir / "mesh.ply")])):
         ts = []
         for _ in range(max(3, repeats // 2)):
             t = time.perf_counter()
-            p = subprocess.run(base + extra, capture_output=True, text=True)
+            p = subprocess.run(base + extra, capture_output=True, text=True, env=env)
             ts.append((time.perf_counter() - t) * 1e3)
             if p.returncode != 0:
                 raise SystemExit(f"gbscan scan failed: {p.stderr.strip()}")

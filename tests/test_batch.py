@@ -18,6 +18,8 @@ from gbscan.io import write_png
 
 H, W = 24, 32
 DIE = (13, 37, 99)  # a frame whose pixel (0, 0) has this colour kills its worker process
+SPIN = (21, 42, 77)  # ... loops forever in Python code (stopped by the worker's own deadline)
+STUCK = (22, 44, 88)  # ... blocks forever with SIGALRM masked (like a C call that never returns)
 
 
 class Fake(Processor):
@@ -43,6 +45,15 @@ class Fake(Processor):
         def process(rgb, prior):
             if tuple(int(c) for c in rgb[0, 0]) == DIE:
                 os._exit(3)
+            if tuple(int(c) for c in rgb[0, 0]) == SPIN:
+                while True:
+                    pass
+            if tuple(int(c) for c in rgb[0, 0]) == STUCK:
+                import signal
+                import time
+
+                signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGALRM})
+                time.sleep(3600)
             if rgb[..., 1].max() == 0:
                 raise GBError("no stripes found in this frame")
             fid = float(rgb[0, 0, 0])
@@ -177,6 +188,87 @@ def test_worker_dying_mid_batch(tmp_path, read_in):
     assert (s.already_done, s.ok) == (7, 1)
 
 
+def test_hanging_frames_time_out_and_the_batch_goes_on(tmp_path):
+    d = _folder(tmp_path, n=7)
+    for i, colour in ((2, SPIN), (4, STUCK)):
+        img = _frame(i)
+        img[0, 0] = colour
+        write_png(d / f"img_{i}.png", img)
+    out = tmp_path / "out"
+    s = run_batch(open_frames(d), Fake(), out, workers=2, timeout_s=1.0, progress=False)
+    rows = read_manifest(out / "manifest.csv")
+    assert (s.ok, s.failed) == (5, 2)
+    for i in (2, 4):  # 2 stops at its deadline in the worker; 4 ignores it and is killed by the parent
+        assert rows[i]["status"] == "failed" and rows[i]["reason"].startswith("timeout"), rows[i]
+        assert not (out / f"frame_{i:06d}.xyz.npy").exists()
+    for i in (0, 1, 3, 5, 6):
+        assert rows[i]["status"] == "ok"
+        _check_frame(out, i)
+    assert s.elapsed_s < 30
+    with pytest.raises(GBError, match="--timeout-s"):
+        run_batch(open_frames(d), Fake(), tmp_path / "o2", timeout_s=-1, progress=False)
+
+
+def test_deadline_in_a_thread_raises_there_and_never_later():
+    import threading
+
+    result = {}
+
+    def spin():
+        try:
+            with batch._deadline(0.2):
+                while True:
+                    pass
+        except batch.FrameTimeout:
+            result["timeout"] = True
+        with batch._deadline(0.2):  # finishes in time: no exception, now or after the deadline
+            pass
+        import time
+
+        time.sleep(0.4)
+        result["after"] = True
+
+    th = threading.Thread(target=spin)
+    th.start()
+    th.join(10)
+    assert result == {"timeout": True, "after": True}
+
+
+def test_several_frames_per_task_and_a_killer_among_them(tmp_path):
+    d = _folder(tmp_path, n=8)
+    killer = _frame(4)
+    killer[0, 0] = DIE
+    write_png(d / "img_4.png", killer)
+    out = tmp_path / "out"
+    s = run_batch(open_frames(d), Fake(), out, workers=2, frames_per_task=3, progress=False)
+    rows = read_manifest(out / "manifest.csv")
+    assert (s.ok, s.failed) == (7, 1) and "worker process died" in rows[4]["reason"]
+    for i in set(range(8)) - {4}:
+        _check_frame(out, i)
+
+
+def test_outputs_are_synced_before_the_manifest_lists_them(tmp_path, monkeypatch):
+    synced, listed_unsynced = set(), []
+    real_sync, real_write = batch.fsync_paths, batch.write_manifest
+
+    def fsync_paths(paths):
+        paths = list(paths)
+        synced.update(str(p) for p in paths)
+        real_sync(paths)
+
+    def write_manifest(path, rows):
+        for r in rows.values():
+            if r.get("status") == "ok":
+                listed_unsynced.extend(n for n in r["outputs"].split(";") if str(path.parent / n) not in synced)
+        return real_write(path, rows)
+
+    monkeypatch.setattr(batch, "fsync_paths", fsync_paths)
+    monkeypatch.setattr(batch, "write_manifest", write_manifest)
+    s = run_batch(open_frames(_folder(tmp_path, n=6)), Fake(), tmp_path / "out", workers=2, ply=True,
+                  manifest_interval_s=0.0, progress=False)
+    assert s.ok == 6 and len(synced) == 12 and listed_unsynced == []
+
+
 def test_temporal_chains_every_frame_to_its_predecessor(tmp_path):
     video = write_video(tmp_path / "seq.avi", [_frame(i) for i in range(11)])
     out = tmp_path / "out"
@@ -237,33 +329,58 @@ def test_progress_lines(capsys):
 
 
 # -- temporal offsets (pure) -----------------------------------------------------------------------
-def _stripes(shift_px, w=200, h=20, stripe_cam_px=3.4):
-    u = np.arange(w)[None, :].repeat(h, 0)
-    return np.floor((u - shift_px) / stripe_cam_px).astype(np.int32) + 40
+def _columns(shift_px, w=200, h=20, stripe_cam_px=3.4, stripe_px=8):
+    """Projector columns (px) of a plane whose stripes are ``stripe_cam_px`` camera px wide,
+    shifted by ``shift_px`` camera px, and their stripe indices (stripe 40 at u = shift)."""
+    u = np.arange(w, dtype=np.float64)[None, :].repeat(h, 0)
+    col = ((u - shift_px) / stripe_cam_px + 40) * stripe_px
+    return col, np.floor(col / stripe_px).astype(np.int32)
+
+
+def _stripes(shift_px, **kw):
+    return _columns(shift_px, **kw)[1]
 
 
 def test_temporal_offsets_recovers_small_motion():
-    prev = _stripes(0.0)
-    for shift in (0.0, 1.5, -2.5):  # camera px, below one stripe (3.4 px)
-        cur = _stripes(shift)
-        true_off = 30
-        rel = cur - true_off
-        region = np.zeros_like(rel)
-        off = temporal_offsets(rel, region, prev, [0])
-        assert off == {0: true_off}
-
-
-def test_temporal_offsets_markers_extend_the_range():
-    prev = _stripes(0.0)
-    cur = _stripes(7.0)  # two stripes of motion: the prior alone is off by a stripe pair
+    prev_col, prev = _columns(0.0)
     true_off = 30
-    rel = cur - true_off
-    region = np.zeros_like(rel)
-    assert temporal_offsets(rel, region, prev, [0]) != {0: true_off}
+    for shift in (0.0, 1.5, -2.5):  # camera px: up to 5.9 projector px of motion (tolerance 6)
+        col, cur = _columns(shift)
+        rel, region = cur - true_off, np.zeros(cur.shape, np.int32)
+        off = temporal_offsets(rel, region, prev, [0], column_relative=col - 8 * true_off, prev_column=prev_col)
+        assert off == {0: true_off}, shift
+    # Without columns the stripe index itself must not change on 90% of the overlap.
+    for shift, ok in ((0.0, True), (0.2, True), (1.5, False)):
+        cur = _stripes(shift)
+        off = temporal_offsets(cur - true_off, np.zeros(cur.shape, np.int32), prev, [0])
+        assert off == ({0: true_off} if ok else {}), shift
+
+
+def test_temporal_offsets_refuses_ambiguous_motion_and_contradicting_markers():
+    prev_col, prev = _columns(0.0)
+    true_off = 30
     markers = np.array([41, 46, 52, 59, 67, 72])
+    for shift in (3.5, -3.0):  # ~8 projector px: halfway between offsets, neither agrees
+        col, cur = _columns(shift)
+        off = temporal_offsets(cur - true_off, np.zeros(cur.shape, np.int32), prev, [0],
+                               column_relative=col - 8 * true_off, prev_column=prev_col)
+        assert off == {}, shift
+    # Two whole stripes of motion look exactly like the neighbouring offset (the limitation the
+    # docstring states); markers seen in the region veto it.
+    col, cur = _columns(7.0)
+    rel = cur - true_off
+    kw = dict(column_relative=col - 8 * true_off, prev_column=prev_col)
+    assert temporal_offsets(rel, np.zeros(rel.shape, np.int32), prev, [0], **kw) == {0: true_off + 2}
     seen = [m - true_off for m in markers if rel.min() <= m - true_off <= rel.max()]
-    off = temporal_offsets(rel, region, prev, [0], markers_rel={0: seen}, marker_stripes=markers)
-    assert off == {0: true_off}
+    assert temporal_offsets(rel, np.zeros(rel.shape, np.int32), prev, [0], markers_rel={0: seen},
+                            marker_stripes=markers, **kw) == {}
+    # Consistent markers do not veto the right offset.
+    col, cur = _columns(1.0)
+    rel = cur - true_off
+    seen = [m - true_off for m in markers if rel.min() <= m - true_off <= rel.max()]
+    assert temporal_offsets(rel, np.zeros(rel.shape, np.int32), prev, [0], markers_rel={0: seen},
+                            marker_stripes=markers, column_relative=col - 8 * true_off,
+                            prev_column=prev_col) == {0: true_off}
 
 
 def test_temporal_offsets_refuses_without_overlap():
@@ -272,6 +389,12 @@ def test_temporal_offsets_refuses_without_overlap():
     assert temporal_offsets(rel, np.zeros_like(rel), prev, [0]) == {}
     with pytest.raises(GBError, match="same"):
         temporal_offsets(rel, np.zeros((5, 5), np.int32), prev, [0])
+    # Overlap on less than half of the region: refused even though it agrees.
+    prev_col, prev = _columns(0.0)
+    col, cur = _columns(0.0)
+    prev_col[:, 80:] = np.nan
+    assert temporal_offsets(cur - 30, np.zeros(cur.shape, np.int32), prev, [0], column_relative=col - 240,
+                            prev_column=prev_col) == {}
 
 
 # -- Dask --------------------------------------------------------------------------------------------
@@ -304,11 +427,12 @@ def test_dask_cluster_with_a_killer_frame(tmp_path, dask_cluster):
     pids = log.read_text().split()
     # Setup runs once per worker process, never per frame: every pid appears once.  Dask retries a
     # task that killed its worker up to `allowed-failures` times, so the killer frame may take out
-    # that many + 1 workers, each replaced by a fresh process that sets up once.
+    # that many + 1 workers per submission, each replaced by a fresh process that sets up once;
+    # the engine submits it twice (in its task, then alone to tell it from its victims).
     import dask
 
     kills = int(dask.config.get("distributed.scheduler.allowed-failures")) + 1
-    assert len(set(pids)) == len(pids) <= 2 + kills
+    assert len(set(pids)) == len(pids) <= 2 + 2 * kills
     assert rows[2]["status"] == "failed" and "KilledWorker" in rows[2]["reason"]
     assert "no stripes" in rows[3]["reason"]
     for i in (0, 1, 4, 5):
@@ -323,6 +447,17 @@ def test_dask_cluster_with_a_killer_frame(tmp_path, dask_cluster):
     assert (s.already_done, s.ok) == (3, 3)
     for i in range(6):
         _check_frame(out2, i)
+    # A frame looping in Python on a Dask worker (task thread) is stopped by its deadline.
+    spin = _frame(1)
+    spin[0, 0] = SPIN
+    d3 = tmp_path / "in3"
+    d3.mkdir()
+    write_png(d3 / "a.png", _frame(0))
+    write_png(d3 / "b.png", spin)
+    s = run_batch(open_frames(d3), Fake(), tmp_path / "out3", scheduler=dask_cluster.scheduler_address,
+                  timeout_s=2.0, progress=False)
+    rows = read_manifest(tmp_path / "out3" / "manifest.csv")
+    assert (s.ok, s.failed) == (1, 1) and rows[1]["reason"].startswith("timeout")
 
 
 def test_unreachable_scheduler(tmp_path):
@@ -355,7 +490,9 @@ def test_cli_bad_input_is_one_line(tmp_path, calib_file):
                  ["batch", tmp_path / "empty", "--calib", calib_file, "-o", tmp_path / "o"],
                  ["batch", tmp_path / "missing", "--calib", calib_file, "-o", tmp_path / "o"],
                  ["batch", tmp_path / "empty", "--calib", tmp_path / "nocalib.yaml", "-o", tmp_path / "o"],
-                 ["batch", tmp_path / "empty", "--calib", calib_file, "-o", tmp_path / "o", "--every", "0"]):
+                 ["batch", tmp_path / "empty", "--calib", calib_file, "-o", tmp_path / "o", "--every", "0"],
+                 ["batch", tmp_path / "empty", "--calib", calib_file, "-o", tmp_path / "o", "--timeout-s", "-1"],
+                 ["batch", tmp_path / "empty", "--calib", calib_file, "-o", tmp_path / "o", "--max-jump", "0"]):
         r = _gbscan(*args)
         assert r.returncode == 1, (args, r.stderr)
         assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
@@ -431,16 +568,63 @@ def test_cli_video_end_to_end_with_scanner(tmp_path, calib_file):
 def test_temporal_stripes_fills_only_unindexed_regions():
     from gbscan.pattern import CYAN, GREEN
 
-    prev = _stripes(0.0)
-    cur = _stripes(1.0)
+    prev_col, prev = _columns(0.0)
+    col, cur = _columns(1.0)
     region = np.where(np.arange(cur.shape[1])[None, :] < 100, 0, 1).repeat(cur.shape[0], 0).astype(np.int32)
     rel = cur - np.where(region == 0, 0, 30)        # region 0 indexed by the decoder, region 1 not
+    col_rel = col - np.where(region == 0, 0, 240)
     unindexed = region == 1
     stripe = np.where(unindexed, -1, cur).astype(np.int32)
     labels = np.full(cur.shape, GREEN, np.uint8)
     markers = np.array([41, 46, 52, 59, 67, 72, 80, 84])
     labels[np.isin(cur, markers)] = CYAN
-    out, offsets, recovered = batch.temporal_stripes(stripe, rel, region, unindexed, labels, prev, markers)
+    prev_col[5, 150] = prev_col[5, 150] + 16  # the previous frame disagrees at one pixel
+    out, offsets, recovered = batch.temporal_stripes(stripe, rel, region, unindexed, labels, prev, markers,
+                                                     column_relative=col_rel, prev_column=prev_col)
     assert offsets == {1: 30}
-    np.testing.assert_array_equal(out, cur)
-    np.testing.assert_array_equal(recovered, unindexed)
+    interior = np.zeros(cur.shape, bool)
+    interior[3:-3, 103:-3] = True  # 3 px from region 0 and from the image border
+    interior[5, 150] = False
+    np.testing.assert_array_equal(recovered, interior)
+    np.testing.assert_array_equal(out[recovered], cur[recovered])
+    np.testing.assert_array_equal(out[~unindexed], cur[~unindexed])
+    assert (out[unindexed & ~recovered] == -1).all()
+
+
+@pytest.mark.slow
+def test_temporal_borrowed_pixels_are_right_on_a_moving_scene():
+    """--temporal on several objects moving 5 mm per frame away from the camera (the decoder
+    leaves regions unindexed there), with the previous frame's true projector columns as the
+    prior (the rules are under test, not the previous frame's decoder): every borrowed pixel's
+    column is right (truth: the simulator's projector pixel)."""
+    import dataclasses
+
+    from gbscan import sim
+    from gbscan.calibfile import calibration_from_rig
+    from gbscan.decode import UNINDEXED
+    from gbscan.pattern import PatternSpec, render_pattern
+    from gbscan.scan import Scanner
+
+    rig, spec = sim.paper_rig(), PatternSpec()
+    cond = dataclasses.replace(sim.preset("typical"), supersample=1)
+    scanner = Scanner(calibration_from_rig(rig, spec))
+    borrowed = right = 0
+    prev_truth = None
+    for i in range(4):
+        r = sim.render(rig, sim.scenes.multi_object(650.0 + 5.0 * i), render_pattern(spec), cond, seed=i)
+        truth = r.proj_xy[..., 0]
+        if prev_truth is not None:
+            prior = batch.TemporalState(np.where(np.isfinite(prev_truth), prev_truth // spec.stripe_px, -1)
+                                        .astype(np.int32), prev_truth.astype(np.float32))
+            s = scanner.scan(r.image)
+            new, state, extra = batch._temporal_scan(scanner, s, prior)
+            assert isinstance(state, batch.TemporalState)
+            rec = (s.stripemap.mask == UNINDEXED) & np.isfinite(state.column)
+            assert extra["temporal_px"] == rec.sum()
+            assert np.array_equal(new.valid & ~s.stripemap.valid, new.valid & rec)  # new points only there
+            ok = rec & np.isfinite(truth)
+            borrowed += int(ok.sum())
+            right += int((np.abs(state.column[ok] - truth[ok]) < spec.stripe_px).sum())
+        prev_truth = truth
+    print(f"borrowed {borrowed} px, {100 * right / max(borrowed, 1):.2f}% right")
+    assert borrowed > 1000 and right >= 0.999 * borrowed

@@ -189,3 +189,81 @@ def test_bad_params_raise():
             CleanParams(**kw)
     with pytest.raises(GBError, match="organised"):
         clean(np.zeros((10, 3)))
+
+
+def _reference_normals(xyz, valid, s):
+    """Plain numpy grid normals (the definition): central differences over ``s`` px where both
+    sides are valid, one-sided otherwise, n = t_v x t_u facing the camera; NaN without tangents."""
+    p = np.where(valid[..., None], np.asarray(xyz, np.float64), np.nan)
+
+    def tangent(axis):
+        fwd = np.full_like(p, np.nan)
+        bwd = np.full_like(p, np.nan)
+        if axis == 1:
+            fwd[:, :-s] = p[:, s:] - p[:, :-s]
+            bwd[:, s:] = fwd[:, :-s]
+        else:
+            fwd[:-s] = p[s:] - p[:-s]
+            bwd[s:] = fwd[:-s]
+        central = fwd + bwd
+        one = np.where(np.isnan(fwd), bwd, fwd)
+        return np.where(np.isnan(central), one, central)
+
+    n = np.cross(tangent(0), tangent(1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        n *= np.where((n * p).sum(-1) > 0, -1.0, 1.0)[..., None]
+    return n
+
+
+@pytest.mark.parametrize("step", [1, 2, 3])
+def test_grid_normals_match_the_finite_difference_definition(scene, step):
+    _, _, xyz, _ = scene
+    rng = np.random.default_rng(3)
+    valid = np.isfinite(xyz[..., 2]) & (rng.random(xyz.shape[:2]) > 0.05)  # holes everywhere
+    n = grid_normals(xyz.astype(np.float32), valid, step)
+    ref = _reference_normals(xyz.astype(np.float32), valid, step)
+    assert n.dtype == np.float32 and n.shape == xyz.shape
+    np.testing.assert_array_equal(np.isnan(n[..., 0]), np.isnan(ref[..., 0]))
+    ok = np.isfinite(ref[..., 0])
+    assert ok.sum() > 0.8 * valid.sum()
+    assert np.max(np.abs(n[ok] - ref[ok])) < 1e-5
+    assert np.isnan(n[~valid]).all()
+
+
+def test_clean_is_the_filters_in_order(scene):
+    """clean() runs compiled kernels on one reason map; the result must be exactly the public
+    filters applied one after the other (first rejecting filter wins)."""
+    _, p, xyz, _ = scene
+    rng = np.random.default_rng(11)
+    bad_xyz, _, _ = plant(xyz, p, rng)
+    bad_xyz = bad_xyz.astype(np.float32)
+    bad_xyz[rng.random(xyz.shape[:2]) < 0.01] = np.nan            # no plane
+    bad_xyz[300:310, 300:310, 2] = 5.0                             # out of the depth range
+    conf = rng.uniform(0.0, 1.0, xyz.shape[:2]).astype(np.float32)  # 20% below min_confidence
+    conf[100:140, 200:260] = np.nan                                  # counts as 0
+    upstream = np.zeros(xyz.shape[:2], np.uint8)
+    upstream[:, :20] = CODE["not_decoded"]
+    params = CleanParams(max_angle_deg=70.0)
+    res = clean(bad_xyz, conf, params, reason=upstream)
+
+    reason = upstream.copy()
+    finite = np.isfinite(bad_xyz).all(-1)
+    reason[(reason == 0) & ~finite] = CODE["no_plane"]
+    valid = reason == 0
+    chain = [lambda v: confidence_filter(conf, v, params.min_confidence),
+             lambda v: depth_range_filter(bad_xyz, v, params.min_depth_mm, params.max_depth_mm),
+             lambda v: outlier_filter(bad_xyz, v, params.outlier_tol, params.min_pairs),
+             lambda v: discontinuity_filter(bad_xyz, v, params.max_jump),
+             lambda v: grazing_filter(bad_xyz, v, params.max_angle_deg, params.normal_step_px),
+             lambda v: cluster_filter(v, (xyz.shape[0] * xyz.shape[1]) // 1000)]
+    counts = {}
+    for f in chain:
+        kept, name = f(valid)
+        reason[valid & ~kept] = CODE[name]
+        counts[name] = int((valid & ~kept).sum())
+        valid = kept
+    np.testing.assert_array_equal(res.reason, reason)
+    assert all(res.counts[k] == v for k, v in counts.items()) and min(counts.values()) > 0, (res.counts, counts)
+    assert res.counts["kept"] == valid.sum() and np.array_equal(res.kept, valid)
+    assert res.counts["input"] == int(((upstream == 0) & finite).sum())

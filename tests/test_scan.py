@@ -280,8 +280,10 @@ def test_sim_curved_cleaning_keeps_decoded_good_points(name):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="decoder columns are biased by 2-13 px within ~3 px of silhouettes seen "
-                                       "at 72-86 degrees; no local filter removes them without losing coverage")
+@pytest.mark.xfail(strict=True, reason="coverage only: depth RMS and worst error pass (the decoder masks rim pixels "
+                                       "whose columns the vertical blur pulls), but ~89% (sphere) / ~84% (head) of lit "
+                                       "non-edge pixels are kept, not 95%: the rest is rim-pulled, dark at grazing "
+                                       "light, or in fragments of rows too short to locate two stripe boundaries")
 @pytest.mark.parametrize("name", ["sphere", "head"])
 def test_sim_curved_accuracy_full_target(name):
     kept, rms, worst = sim_figures(*sim_scan(name))
@@ -306,3 +308,39 @@ def test_sim_scan_command_end_to_end(tmp_path):
     assert np.nanmedian(np.abs(xyz[..., 2] - r.point[..., 2])[ok]) < 0.3
     assert (tmp_path / "mesh.stl").stat().st_size > 84
     assert len(read_cloud_ply(tmp_path / "cloud.ply").points) == ok.sum()
+
+
+def test_decoder_and_cleaning_flags_are_one_set_across_commands():
+    """decode, scan and batch take the same decoder flags with the same meaning (old spellings
+    still work, hidden); scan and batch the same cleaning flags."""
+    from gbscan.cli_common import _Parser
+    from gbscan.commands import batch as batch_cmd
+    from gbscan.commands import decode as decode_cmd
+    from gbscan.commands import scan as scan_cmd
+    from gbscan.decode import DecodeParams
+
+    heads = {decode_cmd: ["img.png"], scan_cmd: ["img.png", "--calib", "c.yaml", "-o", "o.ply"],
+             batch_cmd: ["frames", "--calib", "c.yaml", "-o", "out"]}
+    flags = ["--blur-px", "3", "--balance-window-px", "31", "--local-window-px", "21", "--angle-deg", "5",
+             "--threshold", "global", "--gamma", "1.0", "--decode-param", "min_contrast=0.2"]
+    old = ["--blur", "3", "--window", "31", "--window-px", "21", "--angle", "5", "--threshold", "global",
+           "--gamma", "1.0", "--decode-param", "min_contrast=0.2"]
+    want = DecodeParams(blur_sigma_along_px=3.0, balance_window_px=31, threshold_window_px=21, norm_window_px=21,
+                        stripe_angle_deg=5.0, threshold="global", camera_gamma=1.0, min_contrast=0.2)
+    for mod, head in heads.items():
+        p = _Parser()
+        mod.add_arguments(p)
+        assert decode_cmd.decode_params_from_args(p.parse_args(head)) is None
+        assert decode_cmd.decode_params_from_args(p.parse_args(head + flags)) == want, mod.__name__
+        assert decode_cmd.decode_params_from_args(p.parse_args(head + old)) == want, mod.__name__
+        text = p.format_help()
+        assert "--local-window-px" in text and "--window-px" not in text and "--window " not in text
+        if mod is not decode_cmd:
+            a = p.parse_args(head + ["--max-jump", "0.02", "--clean-param", "normal_step_px=3"])
+            c = scan_cmd.clean_params_from_args(a)
+            assert (c.max_jump, c.normal_step_px) == (0.02, 3)
+    p = _Parser()
+    batch_cmd.add_arguments(p)
+    assert scan_cmd.clean_params_from_args(p.parse_args(heads[batch_cmd]), none_if_default=True) is None
+    with pytest.raises(GBError, match="--decode-param"):
+        decode_cmd.decode_params_from_args(p.parse_args(heads[batch_cmd] + ["--decode-param", "unwrap=1"]))

@@ -21,13 +21,19 @@ Parallel: --workers N local processes (default: all cores).  --scheduler tcp://H
 an existing Dask cluster instead (pip install 'gbscan[batch]'); its workers must see INPUT and
 OUTDIR at the same paths (a video is decoded here and frames are sent to the workers).
 
---temporal processes consecutive frames in order (in chunks, each started by re-decoding the
-frame before it) and gives each frame its predecessor's absolute stripe map, from which regions
-the cyan markers cannot index alone take their offset (gbscan.batch.temporal_offsets; right while
-the stripes move less than one stripe between frames, or half a marker gap when the region shows
-a marker; faster motion gives a whole-stripe-pair error on that region).  temporal_px counts
-those pixels.  They become points once the decoder reports the projector column of unindexed
-regions (StripeMap.column_relative); until then the points are each frame's own.
+--temporal (experimental) processes consecutive frames in order (in chunks, each started by
+re-decoding the frame before it) and lets each frame borrow, from its predecessor's stripes and
+projector columns, the offset of regions the cyan markers cannot index alone
+(gbscan.batch.temporal_offsets).  A region borrows only when most of it overlaps the previous
+frame's columns, these agree with one offset within 3/4 of a stripe on 90% of the overlap and not
+with the neighbouring offsets (small motion), and any marker seen fits; then only its pixels that
+agree pixel by pixel, at least 3 px inside the region, get points (confidence <= 0.5; counted in
+temporal_px).  On simulated moving sequences every borrowed pixel was right; it is wrong when the
+previous frame was wrong there, or when a region moves by exactly two stripes (~7 camera px at
+650 mm) between frames.
+
+--timeout-s S (default 60): a frame still running after S seconds is recorded failed with reason
+'timeout' and the batch goes on (a local worker stuck in C code is killed and replaced).
 """
 from __future__ import annotations
 
@@ -37,6 +43,9 @@ HELP = "scan a video or a folder of frames: one range image per frame, resumable
 
 
 def add_arguments(p):
+    from .decode import add_decode_arguments
+    from .scan import add_clean_arguments
+
     p.add_argument("input", help="folder of camera frames, or a video file")
     p.add_argument("--calib", required=True, help="calibration file (gbcal calibrate)")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="output folder")
@@ -51,76 +60,38 @@ def add_arguments(p):
                    help="use the previous frame to index regions the markers cannot (see above)")
     p.add_argument("--restart", action="store_true",
                    help="ignore results already in OUTDIR (needed to reuse it with other settings)")
+    p.add_argument("--timeout-s", type=float, default=60.0, metavar="S",
+                   help="a frame still running after S seconds is abandoned and recorded failed with reason "
+                        "'timeout' (default 60, plus 300 for each worker's first frame, which compiles the "
+                        "kernels; 0 = no limit)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
-    g = p.add_argument_group("scan parameters (defaults as 'gbscan scan')")
-    g.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
-                   help="a gbscan.decode.DecodeParams field, e.g. blur_sigma_along_px=3 (repeatable)")
-    g.add_argument("--clean-param", action="append", default=[], metavar="NAME=VALUE",
-                   help="a gbscan.clean.CleanParams field, e.g. min_confidence=0.3 (repeatable)")
+    add_decode_arguments(p)
+    add_clean_arguments(p, no_clean=False)
 
 
 def params_from_pairs(cls, pairs: list[str], option: str):
-    """A dataclass ``cls`` from ``NAME=VALUE`` strings (defaults elsewhere), or None if none given.
+    """A dataclass ``cls`` from ``NAME=VALUE`` strings, or None (see :mod:`gbscan.commands.decode`)."""
+    from .decode import params_from_pairs as from_pairs
 
-    Values are converted like the field's default (bool, int, float, str); ``none`` gives None.
-    """
-    import dataclasses
-
-    from ..errors import GBError
-
-    if not pairs:
-        return None
-    fields = {f.name for f in dataclasses.fields(cls)}
-    defaults = cls()
-    kw = {}
-    for item in pairs:
-        name, sep, value = item.partition("=")
-        name, value = name.strip().replace("-", "_"), value.strip()
-        current = getattr(defaults, name, None)
-        if not sep or name not in fields or dataclasses.is_dataclass(current):
-            raise GBError(f"{option} {item!r}: expected NAME=VALUE with NAME one of "
-                          f"{', '.join(n for n in fields if not dataclasses.is_dataclass(getattr(defaults, n)))}")
-        try:
-            if value.lower() in ("none", "null"):
-                kw[name] = None
-            elif isinstance(current, bool):
-                if value.lower() not in ("1", "0", "true", "false", "yes", "no", "on", "off"):
-                    raise ValueError
-                kw[name] = value.lower() in ("1", "true", "yes", "on")
-            elif isinstance(current, int):
-                kw[name] = int(value)
-            elif isinstance(current, float):
-                kw[name] = float(value)
-            elif current is None:  # optional field: a number if it looks like one
-                try:
-                    kw[name] = int(value)
-                except ValueError:
-                    kw[name] = float(value)
-            else:
-                kw[name] = value
-        except ValueError:
-            raise GBError(f"{option} {item!r}: {value!r} is not a valid value for {name} "
-                          f"(default {current!r})") from None
-    try:
-        return cls(**kw)
-    except (TypeError, ValueError) as e:
-        raise GBError(f"{option}: {e}") from None
+    return from_pairs(cls, pairs, option)
 
 
 def run(args) -> int:
     from ..batch import ScannerProcessor, run_batch
     from ..errors import GBError
     from ..frames import open_frames
-    from ..clean import CleanParams
-    from ..decode import DecodeParams
+    from .decode import decode_params_from_args
+    from .scan import clean_params_from_args
 
     if args.workers is not None and args.workers < 1:
         raise GBError(f"--workers must be >= 1, got {args.workers}")
     if args.every < 1:
         raise GBError(f"--every must be >= 1, got {args.every}")
+    if not args.timeout_s >= 0:
+        raise GBError(f"--timeout-s must be >= 0 seconds (0 = no limit), got {args.timeout_s}")
     proc = ScannerProcessor(args.calib,
-                            decode_params=params_from_pairs(DecodeParams, args.decode_param, "--decode-param"),
-                            clean_params=params_from_pairs(CleanParams, args.clean_param, "--clean-param"),
+                            decode_params=decode_params_from_args(args),
+                            clean_params=clean_params_from_args(args, none_if_default=True),
                             temporal=args.temporal)
     with open_frames(args.input) as source:
         what = (f"{len(source)} frames in folder {source.path}" if source.kind == "folder"
@@ -132,7 +103,8 @@ def run(args) -> int:
             print(f"ignored {len(source.ignored)} non-image file(s): {shown}", file=sys.stderr)
         s = run_batch(source, proc, args.output, start=args.start, stop=args.stop, every=args.every,
                       workers=args.workers, scheduler=args.scheduler, ply=args.ply, mesh=args.mesh,
-                      temporal=args.temporal, restart=args.restart, progress=not args.quiet)
+                      temporal=args.temporal, restart=args.restart, progress=not args.quiet,
+                      timeout_s=args.timeout_s or None)
     print(f"{s.selected} frames selected: {s.already_done} already done, {s.ok} done now, {s.failed} failed "
           f"({s.frames_per_s:.1f} frames/s over {s.elapsed_s:.1f} s)")
     for frame, why in s.failures[:10]:

@@ -24,29 +24,121 @@ def add_arguments(p):
     p.add_argument("--no-markers", action="store_true", help="the pure green/blue pattern (relative index only)")
     p.add_argument("--projector", type=size_arg, default=(1024, 768), metavar="WxH",
                    help="projector resolution (default 1024x768)")
-    p.add_argument("--window", type=int, metavar="N",
-                   help="colour-balance window (px, odd; 0 = whole image, e.g. 31 for faces)")
-    p.add_argument("--blur", type=float, metavar="SIGMA", help="motion-blur sigma along the stripes (camera px)")
-    p.add_argument("--angle", type=float, metavar="DEG", help="stripe direction from vertical (degrees)")
-    p.add_argument("--threshold", choices=("local", "global"), help="thresholding (default local)")
-    p.add_argument("--gamma", type=float, metavar="G", help="camera encoding gamma (default 2.2; 1 = linear)")
+    add_decode_arguments(p)
 
 
-def _params(args):
+# -- the decoder's flags: one set for every command that decodes (decode, scan, batch) ----------
+#: flag -> (DecodeParams field(s) it sets, type, metavar, help)
+DECODE_FLAGS = {
+    "--blur-px": (("blur_sigma_along_px",), float, "SIGMA",
+                  "motion-blur sigma along the stripes, camera px (default 2)"),
+    "--balance-window-px": (("balance_window_px",), int, "N",
+                            "colour-balance window, camera px (odd; 0 = whole image, the default; e.g. 31 "
+                            "for faces)"),
+    "--local-window-px": (("threshold_window_px", "norm_window_px"), int, "N",
+                          "window of the local threshold and of the local min/max normalisation, camera px "
+                          "(default 15; should span two stripe periods)"),
+    "--angle-deg": (("stripe_angle_deg",), float, "DEG", "stripe direction from vertical, degrees (default 0)"),
+    "--threshold": (("threshold",), str, None, "thresholding: local (default) or global"),
+    "--gamma": (("camera_gamma",), float, "G", "camera encoding gamma (default 2.2; 1 = linear camera)"),
+}
+#: Earlier spellings, still accepted but not shown: 'gbscan decode' --window (colour balance),
+#: --blur, --angle; 'gbscan scan' --window-px (the local windows, not the colour balance).
+DECODE_ALIASES = {"--blur": "--blur-px", "--window": "--balance-window-px", "--angle": "--angle-deg",
+                  "--window-px": "--local-window-px"}
+
+
+def _dest(flag: str) -> str:
+    return "decode_" + flag.lstrip("-").replace("-", "_")
+
+
+def add_decode_arguments(parser) -> None:
+    """The decoder's options with the same names and meanings in every command: the flags of
+    :data:`DECODE_FLAGS`, their hidden old spellings (:data:`DECODE_ALIASES`) and ``--decode-param
+    NAME=VALUE`` for any other :class:`gbscan.decode.DecodeParams` field (the named flags win).
+    Read them back with :func:`decode_params_from_args`."""
+    import argparse
+
+    g = parser.add_argument_group("decoding (defaults: gbscan.decode.DecodeParams)")
+    for flag, (_, typ, metavar, text) in DECODE_FLAGS.items():
+        kw = {"choices": ("local", "global")} if flag == "--threshold" else {"type": typ, "metavar": metavar}
+        g.add_argument(flag, dest=_dest(flag), help=text, **kw)
+    for old, flag in DECODE_ALIASES.items():
+        g.add_argument(old, dest=_dest(flag), type=DECODE_FLAGS[flag][1], help=argparse.SUPPRESS)
+    g.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
+                   help="any other DecodeParams field, e.g. min_contrast=0.2 (repeatable)")
+
+
+def decode_params_from_args(args):
+    """:class:`gbscan.decode.DecodeParams` from the options of :func:`add_decode_arguments`, or None
+    when none was given (the decoder's defaults)."""
     from ..decode import DecodeParams
 
+    kw = pairs_to_kwargs(DecodeParams, getattr(args, "decode_param", None) or [], "--decode-param")
+    for flag, (fields, _, _, _) in DECODE_FLAGS.items():
+        value = getattr(args, _dest(flag), None)
+        if value is not None:
+            kw.update(dict.fromkeys(fields, value))
+    return build_params(DecodeParams, kw, "decoder options") if kw else None
+
+
+def params_from_pairs(cls, pairs: list[str], option: str):
+    """A dataclass ``cls`` from ``NAME=VALUE`` strings (defaults elsewhere), or None if none given."""
+    return build_params(cls, pairs_to_kwargs(cls, pairs, option), option) if pairs else None
+
+
+def pairs_to_kwargs(cls, pairs: list[str], option: str) -> dict:
+    """``NAME=VALUE`` strings -> {field: value} for dataclass ``cls``; GBError naming ``option``.
+
+    Values are converted like the field's default (bool, int, float, str); ``none`` gives None.
+    Fields that are dataclasses themselves (``DecodeParams.unwrap``) cannot be set this way.
+    """
+    import dataclasses
+
+    from ..errors import GBError
+
+    defaults = cls()
+    settable = [f.name for f in dataclasses.fields(cls) if not dataclasses.is_dataclass(getattr(defaults, f.name))]
     kw = {}
-    if args.window is not None:
-        kw["balance_window_px"] = args.window
-    if args.blur is not None:
-        kw["blur_sigma_along_px"] = args.blur
-    if args.angle is not None:
-        kw["stripe_angle_deg"] = args.angle
-    if args.threshold is not None:
-        kw["threshold"] = args.threshold
-    if args.gamma is not None:
-        kw["camera_gamma"] = args.gamma
-    return DecodeParams(**kw)
+    for item in pairs:
+        name, sep, value = item.partition("=")
+        name, value = name.strip().replace("-", "_"), value.strip()
+        if not sep or name not in settable:
+            raise GBError(f"{option} {item!r}: expected NAME=VALUE with NAME one of {', '.join(settable)}")
+        current = getattr(defaults, name)
+        try:
+            if value.lower() in ("none", "null"):
+                kw[name] = None
+            elif isinstance(current, bool):
+                if value.lower() not in ("1", "0", "true", "false", "yes", "no", "on", "off"):
+                    raise ValueError
+                kw[name] = value.lower() in ("1", "true", "yes", "on")
+            elif isinstance(current, int) or (current is None and name.endswith("_px")):
+                kw[name] = int(value)
+            elif isinstance(current, float):
+                kw[name] = float(value)
+            elif current is None:  # optional field: a number if it looks like one
+                try:
+                    kw[name] = int(value)
+                except ValueError:
+                    kw[name] = float(value)
+            else:
+                kw[name] = value
+        except ValueError:
+            raise GBError(f"{option} {item!r}: {value!r} is not a valid value for {name} "
+                          f"(default {current!r})") from None
+    return kw
+
+
+def build_params(cls, kw: dict, what: str):
+    """``cls(**kw)``; a TypeError/ValueError becomes a GBError naming ``what`` (the class's own
+    checks raise GBError already)."""
+    from ..errors import GBError
+
+    try:
+        return cls(**kw)
+    except (TypeError, ValueError) as e:
+        raise GBError(f"{what}: {e}") from None
 
 
 def summary(sm) -> str:
@@ -93,7 +185,9 @@ def run(args) -> int:
         size = cal.camera.size
     else:
         pattern = PatternSpec(args.projector[0], args.projector[1], args.stripe_px, not args.no_markers)
-    params = _params(args)
+    from ..decode import DecodeParams
+
+    params = decode_params_from_args(args) or DecodeParams()
     if args.preview:
         d = Path(args.preview)
         if d.exists() and not d.is_dir():

@@ -23,6 +23,8 @@ HELP = "scan one frame: decode, triangulate, clean -> point cloud (+ xyz map, me
 
 
 def add_arguments(p):
+    from .decode import add_decode_arguments
+
     p.add_argument("image", help="camera frame of the stripe pattern (colour PNG/JPEG/TIFF...)")
     p.add_argument("--calib", required=True, help="calibration file (gbcal calibrate)")
     p.add_argument("-o", "--output", required=True, help="output point cloud (.ply)")
@@ -34,15 +36,16 @@ def add_arguments(p):
                    help="grid: triangulate the pixel grid (fast, default); poisson: watertight-ish surface")
     g.add_argument("--depth", type=int, default=9, help="Poisson octree depth (default 9)")
     g.add_argument("--smooth", type=int, default=0, metavar="N", help="Taubin smoothing iterations (default 0)")
-    g = p.add_argument_group("decoding")
-    g.add_argument("--blur-px", type=float, metavar="SIGMA",
-                   help="decoder blur sigma along the stripes, camera px (default: decoder's)")
-    g.add_argument("--window-px", type=int, metavar="N",
-                   help="decoder local threshold/normalisation window, camera px (default: decoder's)")
-    g.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
-                   help="any other gbscan.decode.DecodeParams field (repeatable)")
-    g = p.add_argument_group("cleaning")
-    g.add_argument("--no-clean", action="store_true", help="keep every triangulated point")
+    add_decode_arguments(p)
+    add_clean_arguments(p)
+
+
+def add_clean_arguments(parser, *, no_clean: bool = True) -> None:
+    """The cleaning options (:class:`gbscan.clean.CleanParams`), the same in 'scan' and 'batch';
+    read them back with :func:`clean_params_from_args`."""
+    g = parser.add_argument_group("cleaning (defaults: gbscan.clean.CleanParams)")
+    if no_clean:
+        g.add_argument("--no-clean", action="store_true", help="keep every triangulated point")
     g.add_argument("--min-confidence", type=float, help="drop points below this decoder confidence (0..1)")
     g.add_argument("--depth-range", type=float, nargs=2, metavar=("MIN_MM", "MAX_MM"), help="accepted z range, mm")
     g.add_argument("--max-jump", type=float, help="depth discontinuity: neighbour jump as a fraction of depth")
@@ -50,6 +53,8 @@ def add_arguments(p):
     g.add_argument("--outlier-tol", type=float,
                    help="spikes: deviation from the neighbours' mean, as a fraction of depth (default 0.002)")
     g.add_argument("--min-cluster-px", type=int, help="drop connected pieces smaller than this (px)")
+    g.add_argument("--clean-param", action="append", default=[], metavar="NAME=VALUE",
+                   help="any other CleanParams field, e.g. normal_step_px=3 (repeatable)")
 
 
 def _check_output(path: str | None, suffixes: tuple[str, ...], what: str) -> Path | None:
@@ -85,47 +90,19 @@ def _check_preview_dir(path: str | None) -> Path | None:
 
 
 def decode_params_from_args(args):
-    """DecodeParams from --blur-px/--window-px/--decode-param, or None for the defaults."""
-    import dataclasses
+    """DecodeParams from the decoding options, or None for the defaults (see commands.decode)."""
+    from .decode import decode_params_from_args as from_args
 
-    from ..decode import DecodeParams
-    from ..errors import GBError
-
-    fields = {f.name: f for f in dataclasses.fields(DecodeParams)}
-    kw = {}
-    if args.blur_px is not None:
-        kw["blur_sigma_along_px"] = args.blur_px
-    if args.window_px is not None:
-        kw["threshold_window_px"] = args.window_px
-        kw["norm_window_px"] = args.window_px
-    defaults = DecodeParams()
-    for item in args.decode_param:
-        name, sep, value = item.partition("=")
-        name = name.strip().replace("-", "_")
-        if not sep or name not in fields or name == "unwrap":
-            known = ", ".join(n for n in fields if n != "unwrap")
-            raise GBError(f"--decode-param {item!r}: expected NAME=VALUE with NAME one of {known}")
-        current = getattr(defaults, name)
-        try:
-            if value.strip().lower() in ("none", "null"):
-                kw[name] = None
-            elif isinstance(current, bool):
-                kw[name] = value.strip().lower() in ("1", "true", "yes", "on")
-            elif isinstance(current, int) or name.endswith("window_px"):
-                kw[name] = int(value)
-            elif isinstance(current, float):
-                kw[name] = float(value)
-            else:
-                kw[name] = value.strip()
-        except ValueError:
-            raise GBError(f"--decode-param {item!r}: {value!r} is not a valid {type(current).__name__}") from None
-    return DecodeParams(**kw) if kw else None
+    return from_args(args)
 
 
-def clean_params_from_args(args):
+def clean_params_from_args(args, *, none_if_default: bool = False):
+    """CleanParams from the options of :func:`add_clean_arguments` (named flags win over
+    --clean-param); ``none_if_default``: None when no option was given."""
     from ..clean import CleanParams
+    from .decode import build_params, pairs_to_kwargs
 
-    kw = {}
+    kw = pairs_to_kwargs(CleanParams, getattr(args, "clean_param", None) or [], "--clean-param")
     if args.min_confidence is not None:
         kw["min_confidence"] = args.min_confidence
     if args.depth_range is not None:
@@ -133,7 +110,9 @@ def clean_params_from_args(args):
     for name in ("max_jump", "max_angle_deg", "outlier_tol", "min_cluster_px"):
         if getattr(args, name) is not None:
             kw[name] = getattr(args, name)
-    return CleanParams(**kw)
+    if none_if_default and not kw:
+        return None
+    return build_params(CleanParams, kw, "cleaning options")
 
 
 def run(args) -> int:
