@@ -8,9 +8,16 @@ runs them in order and keeps, per pixel, the code of the first filter that rejec
 (``REASONS``), so the counts add up and the coverage picture can colour pixels by reason.
 
 Order matters: isolated spikes are removed (``outlier``) *before* depth discontinuities, so a
-spike costs one pixel instead of taking its four neighbours with it; small clusters are found
-last, as 4-connected components of what is left (the discontinuity filter has already cut every
-4-neighbour pair across a depth jump, so a detached blob is its own component).
+spike costs one pixel instead of taking its four neighbours with it; the same jump test is then
+made across holes (``gap_edge``: a run end next to a missing pixel against the first point
+beyond it, so an edge whose far-side neighbours were never decoded, or were just dropped, still
+loses its rim); small clusters are found last, as 4-connected components of what is left (the
+discontinuity filter has already cut every 4-neighbour pair across a depth jump, so a detached
+blob is its own component).
+
+What no filter here can see: points the decoder extended from one surface into another that it
+reported nothing for (no point of the far surface within ``max_gap_px``): they lie exactly on
+the surface they were extended from.
 """
 from __future__ import annotations
 
@@ -31,6 +38,7 @@ REASONS = {
     6: "discontinuity",
     7: "grazing",
     8: "small_cluster",
+    9: "gap_edge",
 }
 CODE = {name: code for code, name in REASONS.items()}
 
@@ -52,6 +60,13 @@ class CleanParams:
         plane's depth RMS is 0.09 mm; spikes below it stay within the 3 mm accuracy promise).
     min_cluster_px : 4-connected components smaller than this are dropped
         (None: one pixel in a thousand of the image, 307 at 640x480).
+    max_gap_px, gap_far_px, gap_near_px : the depth-jump test across holes
+        (:func:`gap_edge_filter`): a run end whose depth differs by more than ``max_jump`` per px
+        of distance from the first in-play pixel beyond a hole of at most ``max_gap_px`` px loses
+        ``gap_far_px`` pixels if it is the farther of the two, ``gap_near_px`` if the nearer
+        (``max_gap_px`` 0 disables).  On the simulator every wrong point this test can reach is
+        on the farther side (the far surface's stripes spilled 1-2 px over the near object's
+        silhouette) and the nearer run ends are good points, hence 2 and 0.
     """
 
     min_confidence: float = 0.2
@@ -63,6 +78,9 @@ class CleanParams:
     outlier_tol: float = 0.002
     min_pairs: int = 1
     min_cluster_px: int | None = None
+    max_gap_px: int = 8
+    gap_far_px: int = 2
+    gap_near_px: int = 0
 
     def __post_init__(self):
         checks = [
@@ -74,6 +92,8 @@ class CleanParams:
             (self.outlier_tol > 0, "outlier_tol must be > 0"),
             (0 <= int(self.min_pairs) <= 4, "min_pairs must be between 0 and 4"),
             (self.min_cluster_px is None or int(self.min_cluster_px) >= 0, "min_cluster_px must be >= 0"),
+            (int(self.max_gap_px) >= 0, "max_gap_px must be >= 0"),
+            (int(self.gap_far_px) >= 0 and int(self.gap_near_px) >= 0, "gap_far_px and gap_near_px must be >= 0"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -140,6 +160,34 @@ def discontinuity_filter(xyz: np.ndarray, valid: np.ndarray, max_jump: float = 0
     xyz, reason = _points(xyz), _reason_map(valid, xyz)
     kernels.clean_jumps(xyz, reason, float(max_jump), 1)
     return reason == 0, "discontinuity"
+
+
+def gap_edge_filter(xyz: np.ndarray, valid: np.ndarray, max_jump: float = 0.01, max_gap_px: int = 8,
+                    far_px: int = 2, near_px: int = 0):
+    """Drop the ends of runs that a hole of at most ``max_gap_px`` px separates from a surface
+    at another depth: the depth-jump test when the neighbour across the edge is *missing*.
+
+    At a silhouette the decoder often reports nothing for a few pixels (blur, shadow, a column
+    it could not index) and extends the other surface's stripes by a pixel or two into the
+    object: those points sit exactly on the wrong surface, so no local test sees them, and the
+    plain jump test has no neighbour to compare with.  For every valid pixel whose 4-neighbour
+    in a direction is missing, the first valid pixel ``k`` px further that way (``k <=
+    max_gap_px + 1``) is compared with it; if their depths differ by more than
+    ``max_jump * k * z`` (``z`` the nearer; the jump test's per-pixel slope, so a steep but
+    smooth surface with a hole in it passes), the pixel and the valid pixels behind it along
+    its run are dropped: ``far_px`` in all if it is the farther of the two, ``near_px`` if the
+    nearer (each side of the hole is tested from its own side).  ``max_gap_px`` 0 keeps
+    everything.
+    """
+    from . import kernels
+
+    if int(max_gap_px) < 0 or int(far_px) < 0 or int(near_px) < 0:
+        raise GBError("gap_edge_filter: max_gap_px, far_px and near_px must be >= 0, "
+                      f"got {max_gap_px}, {far_px}, {near_px}")
+    xyz, reason = _points(xyz), _reason_map(valid, xyz)
+    if int(max_gap_px) > 0:
+        kernels.clean_gap_edges(xyz, reason, float(max_jump), int(max_gap_px), int(far_px), int(near_px), 1)
+    return reason == 0, "gap_edge"
 
 
 def grazing_filter(xyz: np.ndarray, valid: np.ndarray, max_angle_deg: float = 80.0, step_px: int = 2,
@@ -262,9 +310,11 @@ def clean(xyz: np.ndarray, confidence: np.ndarray | None = None, params: CleanPa
     if use_conf:
         counts["low_confidence"] = n_conf
     counts["depth_range"] = n_depth
-    n_spike, n_jump = kernels.clean_spikes_jumps(xyz, reason, float(params.outlier_tol), int(params.min_pairs),
-                                                 CODE["outlier"], float(params.max_jump), CODE["discontinuity"])
-    counts["outlier"], counts["discontinuity"] = int(n_spike), int(n_jump)
+    n_spike, n_jump, n_gap = kernels.clean_spikes_jumps(
+        xyz, reason, float(params.outlier_tol), int(params.min_pairs), CODE["outlier"], float(params.max_jump),
+        CODE["discontinuity"], int(params.max_gap_px), int(params.gap_far_px), int(params.gap_near_px),
+        CODE["gap_edge"])
+    counts["outlier"], counts["discontinuity"], counts["gap_edge"] = int(n_spike), int(n_jump), int(n_gap)
     normals = np.empty((H, W, 3), np.float32)  # normals of what is left, and the grazing filter with them
     counts["grazing"] = int(kernels.grid_normals_into(xyz, reason, int(params.normal_step_px), normals,
                                                       float(np.cos(np.radians(params.max_angle_deg))), CODE["grazing"]))

@@ -485,7 +485,8 @@ def link_votes(comp, col_rel, col_abs, max_gap_px):
     neighbours (v +- 1, v +- 2) or, along its row past at most ``max_gap_px`` pixels of neither,
     two horizontal neighbours are reported predicts its absolute column by linear extrapolation
     of theirs; each prediction is one vote ``pred - col_rel`` (px).  Returns (comp, residual,
-    line) with ``line`` = column (vertical votes) or ``-1 - row`` (horizontal votes).
+    line, row) with ``line`` = column (vertical votes) or ``-1 - row`` (horizontal votes) and
+    ``row`` the candidate pixel's row.
     """
     H, W = comp.shape
     n = 0
@@ -496,6 +497,7 @@ def link_votes(comp, col_rel, col_abs, max_gap_px):
     out_c = np.empty(4 * n, np.int32)
     out_r = np.empty(4 * n, np.float64)
     out_l = np.empty(4 * n, np.int32)
+    out_v = np.empty(4 * n, np.int32)
     m = 0
     for v in range(H):
         for u in range(W):
@@ -509,6 +511,7 @@ def link_votes(comp, col_rel, col_abs, max_gap_px):
                     out_c[m] = c
                     out_r[m] = 2.0 * col_abs[q, u] - col_abs[q2, u] - x
                     out_l[m] = u
+                    out_v[m] = v
                     m += 1
                 for k in range(1, max_gap_px + 2):
                     q = u + d * k
@@ -521,9 +524,10 @@ def link_votes(comp, col_rel, col_abs, max_gap_px):
                             out_c[m] = c
                             out_r[m] = col_abs[v, q] + slope * (u - q) - x
                             out_l[m] = -1 - v
+                            out_v[m] = v
                             m += 1
                         break
-    return out_c[:m], out_r[:m], out_l[:m]
+    return out_c[:m], out_r[:m], out_l[:m], out_v[:m]
 
 
 @njit(cache=True, nogil=True)
@@ -1951,12 +1955,77 @@ def clean_jumps(xyz, reason, max_jump, code):
 
 
 @njit(cache=True, nogil=True)
-def clean_spikes_jumps(xyz, reason, tol, min_pairs, code_spike, max_jump, code_jump):
-    """Spikes, then depth discontinuities on what is left, sharing one depth map; (n_spike, n_jump)."""
+def _gap_pass(zp, reason, max_jump, max_gap_px, far_px, near_px, code):
+    """Depth edges across holes: the depth-jump test between the ends of runs a hole separates.
+
+    For every in-play pixel whose 4-neighbour in a direction is not in play, the first in-play
+    pixel ``k`` px away in that direction (``2 <= k <= max_gap_px + 1``) is compared with it:
+    when their depths differ by more than ``max_jump * k`` times the nearer one (the jump test's
+    slope, kept over the hole), the pixel and the in-play pixels behind it (back along the run,
+    stopping at the first hole) are rejected: ``far_px`` of them if the pixel is the farther of
+    the two, ``near_px`` if it is the nearer.  The other side is handled by its own scan in the
+    opposite direction.  Every decision reads ``zp`` only (the pixels in play at the start; it
+    is updated at the end), so the order of the loops is irrelevant.  Returns how many it rejected.
+    """
+    H, W = reason.shape
+    n = 0
+    for v in range(H):
+        a = zp[v]
+        b = zp[v + 1]
+        c = zp[v + 2]
+        for u in range(W):
+            z = b[u + 1]
+            if not z == z:
+                continue
+            if a[u + 1] == a[u + 1] and c[u + 1] == c[u + 1] and b[u] == b[u] and b[u + 2] == b[u + 2]:
+                continue  # inside a run both ways: the plain jump test's business
+            for d in range(4):
+                dv = 1 if d == 0 else (-1 if d == 1 else 0)
+                du = 1 if d == 2 else (-1 if d == 3 else 0)
+                zn = zp[v + 1 + dv, u + 1 + du]
+                if zn == zn:
+                    continue  # neighbour in play
+                for k in range(2, max_gap_px + 2):
+                    vk = v + k * dv
+                    uk = u + k * du
+                    if vk < 0 or vk >= H or uk < 0 or uk >= W:
+                        break
+                    zk = zp[vk + 1, uk + 1]
+                    if zk == zk:
+                        if abs(zk - z) > max_jump * k * min(z, zk):
+                            for j in range(far_px if z > zk else near_px):
+                                vj = v - j * dv
+                                uj = u - j * du
+                                zj = zp[vj + 1, uj + 1]  # NaN on the padding border
+                                if not zj == zj:
+                                    break
+                                if reason[vj, uj] == 0:
+                                    reason[vj, uj] = code
+                                    n += 1
+                        break
+    for v in range(H):
+        for u in range(W):
+            if reason[v, u] == code:
+                zp[v + 1, u + 1] = np.nan
+    return n
+
+
+@njit(cache=True, nogil=True)
+def clean_gap_edges(xyz, reason, max_jump, max_gap_px, far_px, near_px, code):
+    """The gap-edge filter alone (see :func:`_gap_pass`)."""
+    return _gap_pass(_padded_depth(xyz, reason), reason, max_jump, max_gap_px, far_px, near_px, code)
+
+
+@njit(cache=True, nogil=True)
+def clean_spikes_jumps(xyz, reason, tol, min_pairs, code_spike, max_jump, code_jump, max_gap_px, far_px, near_px,
+                       code_gap):
+    """Spikes, then depth discontinuities, then depth edges across holes (``max_gap_px`` 0:
+    none) on what is left, sharing one depth map; (n_spike, n_jump, n_gap)."""
     zp = _padded_depth(xyz, reason)
     n_spike = _spike_pass(zp, reason, tol, min_pairs, code_spike)
     n_jump = _jump_pass(zp, reason, max_jump, code_jump)
-    return n_spike, n_jump
+    n_gap = _gap_pass(zp, reason, max_jump, max_gap_px, far_px, near_px, code_gap) if max_gap_px > 0 else 0
+    return n_spike, n_jump, n_gap
 
 
 @njit(cache=True, nogil=True)

@@ -94,6 +94,21 @@ class UnwrapParams:
     link_gap_px : unreported pixels a horizontal vote may reach across.
     link_marker_frac : largest fraction of the component's pixels whose colour may contradict
         the markers at the linked offset (cyan on a non-marker stripe, green/blue on a marker).
+    min_believable_junctions : a segment with fewer stripe boundaries than this holds no complete
+        stripe and is never believable (step 3): its relation to the rows around rests on one
+        boundary, and a chain of such bits can bridge two surfaces at a horizontal depth edge where
+        their stripes line up.  Doubtful, each still joins at most one region (step 6).  Measured
+        with ``scripts/sweep_decode.py`` (35 scenes): 0 -> 2 takes the wrong non-edge pixels from
+        6199 to 1972 at the same coverage (82.09 -> 82.06 %); the multi-object scene at 600 mm
+        (seed 1) from 2309 to 3.
+    link_rows, link_reach_rows : a component taller than ``link_reach_rows`` rows is linked only
+        when its agreeing votes come from candidate pixels in at least ``link_rows`` distinct rows
+        (1: no such test).  A tall component touching the reported pixels along one row only may
+        hang below a horizontal depth edge where two surfaces' stripes line up, or below a strip
+        of another surface welded into the voting region: the columns continue exactly there and
+        its few markers may fit both offsets.  Off by default: on the sweep ``link_rows=3`` takes
+        the wrong non-edge pixels 1972 -> 524 but the coverage 82.06 -> 79.82 % (correct tall
+        components linked through one row are dropped too: sphere seed 1 94.9 -> 86.3 %).
     """
 
     n_ref_pixels: int = 4
@@ -117,6 +132,9 @@ class UnwrapParams:
     link_agree_frac: float = 0.95
     link_gap_px: int = 2
     link_marker_frac: float = 0.05
+    min_believable_junctions: int = 2
+    link_rows: int = 1
+    link_reach_rows: int = 8
 
     def __post_init__(self):
         for name in ("n_ref_pixels", "n_ref_rows", "min_region_px", "min_markers", "conflict_run_px",
@@ -129,6 +147,9 @@ class UnwrapParams:
             raise GBError("UnwrapParams.max_gap_px and spike_px must be >= 0")
         if int(self.link_votes) < 0 or int(self.link_lines) < 1 or int(self.link_gap_px) < 0:
             raise GBError("UnwrapParams.link_votes and link_gap_px must be >= 0, link_lines >= 1")
+        if int(self.min_believable_junctions) < 0 or int(self.link_rows) < 1 or int(self.link_reach_rows) < 0:
+            raise GBError(f"UnwrapParams.min_believable_junctions and link_reach_rows must be >= 0, link_rows >= 1, "
+                          f"got {self.min_believable_junctions}, {self.link_reach_rows}, {self.link_rows}")
         if not (0 < float(self.link_tol_px) < 4.0) or not 0.5 <= float(self.link_agree_frac) <= 1.0:
             raise GBError(f"UnwrapParams.link_tol_px must be in (0, 4) px (a quarter period: 2) and link_agree_frac "
                           f"in [0.5, 1], got {self.link_tol_px}, {self.link_agree_frac}")
@@ -271,13 +292,18 @@ def believable_segments(segs: Segments, edges: Edges, p: UnwrapParams) -> np.nda
     dissenting ones) into a vertical chain covering at least ``n_ref_rows`` rows, it saw a green
     or blue run (parity known), and none of its edges to the row above or below is a strong
     disagreement (an edge with many votes but a low agreement fraction means part of the segment
-    is shifted: an inserted or lost stripe) -- :meth:`Edges.disputed`.
+    is shifted: an inserted or lost stripe) -- :meth:`Edges.disputed` -- and it holds at least
+    ``min_believable_junctions`` stripe boundaries.
     """
     from . import kernels
 
     strong = edges.strong(p)
     chain = kernels.chain_lengths(segs.n, edges.s, edges.t, strong)
     ok = (chain >= p.n_ref_rows) & (segs.parity > 0)
+    # a segment with fewer than ``min_believable_junctions`` boundaries holds no complete stripe:
+    # a chain of such bits can weld two surfaces at a horizontal depth edge (they stay doubtful:
+    # step 6 attaches each to at most one region, never merging two)
+    ok &= (segs.j1 - segs.j0) >= p.min_believable_junctions
     bad_edge = edges.disputed(p)
     disputed = np.zeros(segs.n, bool)
     disputed[edges.s[bad_edge]] = True
@@ -700,7 +726,7 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
     markers there (at most ``link_marker_frac`` contradicting pixels).  Otherwise the component
     stays dropped: a guess is never made.  Where two surfaces meet with their stripes lined up
     (an even shift) and no marker nearby, continuity cannot tell them apart: that is the residual
-    risk, the same as the unwrapping's own vertical links.
+    risk, the same as the unwrapping's own vertical links (``link_rows`` narrows it, at a cost).
     """
     from . import kernels
 
@@ -724,7 +750,8 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
         return empty
     if callable(col_abs):
         col_abs = col_abs()
-    vc, vr, vl = kernels.link_votes(comp, cr, np.ascontiguousarray(col_abs, dtype=np.float32), int(params.link_gap_px))
+    vc, vr, vl, vv = kernels.link_votes(comp, cr, np.ascontiguousarray(col_abs, dtype=np.float32),
+                                        int(params.link_gap_px))
     stats["components_tried"] = int(np.unique(vc).size)
     if vc.size == 0:
         return empty
@@ -733,7 +760,7 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
     good = np.abs(vr - k * period) <= float(params.link_tol_px)
     n_all = np.bincount(vc, minlength=segs.n)
     # agreeing votes per (component, offset) and their distinct lines; the best offset per component
-    gc, gk, gl = vc[good].astype(np.int64), k[good], vl[good].astype(np.int64)
+    gc, gk, gl, gv = vc[good].astype(np.int64), k[good], vl[good].astype(np.int64), vv[good].astype(np.int64)
     accept_c = np.zeros(0, np.int64)
     accept_k = accept_n = accept_c
     if gc.size:
@@ -744,11 +771,21 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
         H1 = int(segs.seg.shape[0]) + 1  # lines are in [-H, W): a key per (pair, line)
         line_key = np.unique(pair * (H1 + int(segs.seg.shape[1])) + (gl + H1))
         _, n_lines = np.unique(line_key // (H1 + int(segs.seg.shape[1])), return_counts=True)  # as ``pairs``
+        # distinct rows of the voting candidate pixels (``link_rows``)
+        _, n_rows = np.unique(np.unique(pair * H1 + gv) // H1, return_counts=True)  # as ``pairs``
         pc, pk = pairs // span, pairs % span + gk.min()
         o = np.lexsort((-cnt, pc))
         first = np.r_[True, np.diff(pc[o]) != 0]
         b = o[first]
+        # rows each component spans: a tall one needs votes from ``link_rows`` rows
+        r_lo = np.full(segs.n, np.iinfo(np.int64).max, np.int64)
+        r_hi = np.full(segs.n, -1, np.int64)
+        cs = seg_comp >= 0
+        np.minimum.at(r_lo, seg_comp[cs], segs.row[cs])
+        np.maximum.at(r_hi, seg_comp[cs], segs.row[cs])
+        tall = (r_hi[pc[b]] - r_lo[pc[b]] + 1) > params.link_reach_rows
         ok = ((cnt[b] >= params.link_votes) & (n_lines[b] >= params.link_lines)
+              & ((n_rows[b] >= params.link_rows) | ~tall)
               & (cnt[b] >= params.link_agree_frac * n_all[pc[b]]))
         accept_c, accept_k, accept_n = pc[b][ok], pk[b][ok], cnt[b][ok]
     stats["refused_votes"] = stats["components_tried"] - int(accept_c.size)

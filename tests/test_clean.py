@@ -5,7 +5,7 @@ from test_triangulate import pixel_rays, tilted_plane, truth
 
 from gbscan.calibfile import calibration_from_rig
 from gbscan.clean import (CODE, CleanParams, clean, cluster_filter, confidence_filter, depth_range_filter,
-                          discontinuity_filter, grazing_filter, grid_normals, outlier_filter)
+                          discontinuity_filter, gap_edge_filter, grazing_filter, grid_normals, outlier_filter)
 from gbscan.errors import GBError
 from gbscan.pattern import PatternSpec
 from gbscan.rig import paper_rig
@@ -184,7 +184,8 @@ def test_cluster_filter():
 
 def test_bad_params_raise():
     for kw in ({"min_confidence": 2}, {"min_depth_mm": 500, "max_depth_mm": 100}, {"max_angle_deg": 0},
-               {"min_pairs": 5}, {"max_jump": 0}):
+               {"min_pairs": 5}, {"max_jump": 0}, {"max_gap_px": -1}, {"gap_far_px": -1},
+               {"gap_near_px": -2}):
         with pytest.raises(GBError, match="cleaning parameters"):
             CleanParams(**kw)
     with pytest.raises(GBError, match="organised"):
@@ -255,6 +256,8 @@ def test_clean_is_the_filters_in_order(scene):
              lambda v: depth_range_filter(bad_xyz, v, params.min_depth_mm, params.max_depth_mm),
              lambda v: outlier_filter(bad_xyz, v, params.outlier_tol, params.min_pairs),
              lambda v: discontinuity_filter(bad_xyz, v, params.max_jump),
+             lambda v: gap_edge_filter(bad_xyz, v, params.max_jump, params.max_gap_px, params.gap_far_px,
+                                           params.gap_near_px),
              lambda v: grazing_filter(bad_xyz, v, params.max_angle_deg, params.normal_step_px),
              lambda v: cluster_filter(v, (xyz.shape[0] * xyz.shape[1]) // 1000)]
     counts = {}
@@ -267,3 +270,80 @@ def test_clean_is_the_filters_in_order(scene):
     assert all(res.counts[k] == v for k, v in counts.items()) and min(counts.values()) > 0, (res.counts, counts)
     assert res.counts["kept"] == valid.sum() and np.array_equal(res.kept, valid)
     assert res.counts["input"] == int(((upstream == 0) & finite).sum())
+
+
+# -- depth edges across holes (gap_edge_filter) -------------------------------------------------
+def _edge_with_hole(gap_px, far_mm=900.0, wrong_px=0):
+    """Rows of a far wall (columns < 15) beside a near object (600 mm, columns >= 15), like a
+    decoder leaves them: the wall's depth spills ``wrong_px`` px into the object, then ``gap_px``
+    columns of the object are missing.  Returns (xyz, valid, wrong)."""
+    z = np.full((12, 40), far_mm)
+    z[:, 15 + wrong_px:] = 600.0
+    valid = np.ones(z.shape, bool)
+    valid[:, 15 + wrong_px:15 + wrong_px + gap_px] = False
+    wrong = np.zeros(z.shape, bool)
+    wrong[:, 15:15 + wrong_px] = True
+    xyz = np.stack([np.zeros_like(z), np.zeros_like(z), np.where(valid, z, np.nan)], -1)
+    return xyz, valid, wrong
+
+
+def _dropped_columns(valid, kept):
+    d = valid & ~kept
+    assert np.array_equal(d, d.any(0)[None].repeat(d.shape[0], 0))  # whole columns
+    return np.nonzero(d.any(0))[0].tolist()
+
+
+@pytest.mark.parametrize("gap_px", [1, 3, 8])
+def test_gap_edge_drops_run_ends_across_a_hole(gap_px):
+    xyz, valid, _ = _edge_with_hole(gap_px)
+    # the plain jump test has no pair to compare
+    assert discontinuity_filter(xyz, valid, 0.01)[0].sum() == valid.sum()
+    kept, name = gap_edge_filter(xyz, valid, 0.01, max_gap_px=8)
+    assert name == "gap_edge" and _dropped_columns(valid, kept) == [13, 14]  # far side, 2 px
+    kept, _ = gap_edge_filter(xyz, valid, 0.01, max_gap_px=8, far_px=1, near_px=2)
+    assert _dropped_columns(valid, kept) == [14, 15 + gap_px, 16 + gap_px]
+
+
+def test_gap_edge_removes_the_far_surface_spilled_over_a_silhouette():
+    """The wall's depth continues 2 px into the object, then a hole, then the object: no
+    neighbour pair jumps, every wrong point lies on the wall; the gap test drops exactly them."""
+    xyz, valid, wrong = _edge_with_hole(3, wrong_px=2)
+    assert discontinuity_filter(xyz, valid, 0.01)[0].sum() == valid.sum()
+    inner = wrong.copy()
+    inner[[0, -1]] = False  # the first and last rows' run ends have no complete pair: outliers
+    assert outlier_filter(xyz, valid, 0.002, 1)[0][inner].all()
+    kept, _ = gap_edge_filter(xyz, valid, 0.01, 8)
+    assert np.array_equal(valid & ~kept, wrong)
+    res = clean(xyz, None, CleanParams(min_cluster_px=0), reason=(~valid).view(np.uint8))
+    assert not (res.kept & wrong).any() and res.kept[1:-1].sum() == (valid & ~wrong)[1:-1].sum()
+    res = clean(xyz, None, CleanParams(min_cluster_px=0, max_gap_px=0), reason=(~valid).view(np.uint8))
+    assert res.kept[inner].all() and res.counts["gap_edge"] == 0  # what the cleaning did before
+
+
+def test_gap_edge_keeps_holes_in_smooth_and_steep_surfaces(scene):
+    rig, _, _, _ = scene
+    rays = pixel_rays(rig.camera)
+    n, d = tilted_plane(650.0, (np.tan(np.radians(75)), 0.0, -1.0))  # 75 degrees: ~3 mm per pixel
+    s = d / (rays @ n)
+    valid = (s > 0) & (np.degrees(np.arccos(np.abs(rays @ n))) < 79)
+    xyz = np.where(valid[..., None], rays * s[..., None], np.nan)
+    rng = np.random.default_rng(5)
+    holes = valid & (rng.random(valid.shape) < 0.2)  # 20% of the pixels missing, holes of any length
+    holes[200:208, :] = True                         # and an 8-row band
+    holes[:, 300:309] = True                         # and a 9-column band (longer than max_gap_px)
+    ok = valid & ~holes
+    kept, _ = gap_edge_filter(xyz, ok, 0.01, 8, 2, 2)
+    assert ok.sum() > 0.5 * valid.sum() and np.array_equal(kept, ok)
+
+
+def test_gap_edge_reach_slope_and_parameters():
+    xyz, valid, _ = _edge_with_hole(9)
+    assert gap_edge_filter(xyz, valid, 0.01, 8)[0].sum() == valid.sum()  # far side out of reach
+    assert _dropped_columns(valid, gap_edge_filter(xyz, valid, 0.01, 9)[0]) == [13, 14]
+    assert gap_edge_filter(xyz, valid, 0.01, 0, 2, 2)[0].sum() == valid.sum()  # disabled
+    xyz, valid, _ = _edge_with_hole(3, far_mm=630.0)  # 30 mm over 4 px: 1.25% per px > 1%
+    assert _dropped_columns(valid, gap_edge_filter(xyz, valid, 0.01, 8)[0]) == [13, 14]
+    xyz, valid, _ = _edge_with_hole(3, far_mm=620.0)  # 20 mm over 4 px: 0.83% per px, a slope
+    assert gap_edge_filter(xyz, valid, 0.01, 8, 2, 2)[0].sum() == valid.sum()
+    with pytest.raises(GBError, match="gap_edge_filter"):
+        gap_edge_filter(xyz, valid, 0.01, -1)

@@ -500,3 +500,43 @@ def test_small_regions_indexed_through_neighbours_never_wrong():
         err = np.abs(sm.column - r.proj_xy[..., 0])[lk & np.isfinite(r.proj_xy[..., 0])]
         assert err.size > 1000 and err.max() < PatternSpec().stripe_px / 2, (scene, err.max())
         assert s["index_ok"] >= s0["index_ok"] - 1e-4 and s["index_ok"] >= 0.9995, (scene, s)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("distance_mm, seed, ss, worst_off", [(675.0, 5, 1, 12), (600.0, 1, 3, 20)])
+def test_weld_through_boundary_bits_is_not_indexed(distance_mm, seed, ss, worst_off):
+    """Issue 3 sweep (scripts/sweep_decode.py): multi_object at 675 mm (the batch tests' moving
+    frame i=5: supersample 1, seed 5) and at 600 mm (seed 1).  The unwrapping welded the box's
+    slanted face (7.3 camera px per stripe) to one row of the panel above it (3.4 px) through a
+    chain of row bits holding one stripe boundary each; the panel row was the component's only
+    contact with reported pixels, so link_components indexed the whole face from it: ~2600 px
+    12 stripes off (675 mm), ~2400 px 20 stripes off (600 mm).  Segments with fewer than two
+    boundaries are no longer believable (``min_believable_junctions``): they attach to at most
+    one region and never bridge two surfaces."""
+    import dataclasses
+
+    from gbscan.unwrap import UnwrapParams
+
+    cond = dataclasses.replace(sim.preset("typical"), supersample=ss)
+    r = sim.render(sim.paper_rig(), sim.scenes.multi_object(distance_mm), render_pattern(PatternSpec()), cond,
+                   seed=seed)
+    truth = r.proj_xy[..., 0]
+
+    def off_by(sm):
+        ok = sm.valid & np.isfinite(truth) & ~r.depth_edge
+        return np.round((sm.column - truth)[ok] / PatternSpec().stripe_px).astype(int)
+
+    new = off_by(decode(r.image, PatternSpec()))
+    old = off_by(decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(min_believable_junctions=0))))
+    assert (np.abs(old) == worst_off).sum() > 1000          # the failure as it was (measured 2575 / 2391)
+    assert (np.abs(new) == worst_off).sum() == 0
+    if distance_mm == 600.0:
+        assert (new != 0).sum() <= 10, np.unique(new, return_counts=True)   # measured 3 (one-stripe slips)
+
+
+def test_weld_params_are_validated():
+    from gbscan.unwrap import UnwrapParams
+
+    for bad in ({"min_believable_junctions": -1}, {"link_rows": 0}, {"link_reach_rows": -1}):
+        with pytest.raises(GBError):
+            UnwrapParams(**bad)

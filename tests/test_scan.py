@@ -344,3 +344,70 @@ def test_decoder_and_cleaning_flags_are_one_set_across_commands():
     assert scan_cmd.clean_params_from_args(p.parse_args(heads[batch_cmd]), none_if_default=True) is None
     with pytest.raises(GBError, match="--decode-param"):
         decode_cmd.decode_params_from_args(p.parse_args(heads[batch_cmd] + ["--decode-param", "unwrap=1"]))
+
+
+# -- no flying pixels at depth edges (issue 5) ---------------------------------------------------
+SIM_SCENES["step"] = lambda sim: sim.scenes.step()
+SIM_SCENES["multi_object"] = lambda sim: sim.scenes.multi_object()
+
+
+def _errors_mm(r, s):
+    """(H, W) 3D error (mm) of every kept point (inf where the truth has no surface), 0 elsewhere."""
+    P = r.point.astype(np.float64)
+    err = np.zeros(s.valid.shape)
+    err[s.valid] = np.linalg.norm(s.xyz[s.valid] - P[s.valid], axis=1)
+    err[s.valid & ~np.isfinite(P[..., 2])] = np.inf
+    return err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [
+    "step",
+    pytest.param("multi_object", marks=pytest.mark.xfail(
+        strict=True, reason="the decoder reports ~0.2% of objects 2 and 3 (unindexed / dark) but extends the "
+                            "wall's stripes 1-2 px into them and into object 1's top rows: those ~40 points lie "
+                            "exactly on the wall with no decoded pixel of the object nearby, so nothing in the "
+                            "point map tells them apart (the cleaning's gap_edge test needs the far surface)"))])
+def test_sim_no_point_off_by_3mm_after_cleaning(name):
+    r, s = sim_scan(name)
+    err = _errors_mm(r, s)
+    print(f"{name}: {int((err > 3).sum())} points > 3 mm, {int((err > 1).sum())} > 1 mm, worst {err.max():.1f} mm")
+    assert (err > 3).sum() == 0
+
+
+@pytest.mark.slow
+def test_sim_multi_object_gap_edges_remove_what_the_point_map_shows():
+    """The gap-edge test removes about half of the points extended across silhouettes (> 3 mm off:
+    93 -> 43 at seed 0 with the decoder of this writing) for ~0.1% of the lit non-edge pixels;
+    what stays far off is on true depth edges."""
+    from dataclasses import replace
+
+    r, s = sim_scan("multi_object")
+    sm = s.stripemap
+    scanner = Scanner(calibration_from_rig(paper_rig(), PatternSpec()), clean_params=replace(
+        Scanner(calibration_from_rig(paper_rig(), PatternSpec())).clean_params, max_gap_px=0))
+    s0 = scanner.reconstruct(sm.column, sm.confidence, decoded=sm.valid)
+    err, err0 = _errors_mm(r, s), _errors_mm(r, s0)
+    kept, _, _ = sim_figures(r, s)
+    kept0, _, _ = sim_figures(r, s0)
+    print(f"multi_object > 3 mm: {int((err0 > 3).sum())} without the gap test, {int((err > 3).sum())} with it; "
+          f"lit non-edge kept {100 * kept0:.2f}% -> {100 * kept:.2f}%; gap_edge removed {s.counts['gap_edge']}")
+    assert (err0 > 3).sum() >= 30 and (err > 3).sum() <= 0.6 * (err0 > 3).sum()
+    assert err[~r.depth_edge].max() < 5.0  # off the edges: a few wall points 3.0x mm off next to holes
+    assert kept >= kept0 - 0.005
+
+
+def test_gap_edge_flags_in_scan_and_batch():
+    from gbscan.cli_common import _Parser
+    from gbscan.commands import batch as batch_cmd
+    from gbscan.commands import scan as scan_cmd
+
+    for mod, head in ((scan_cmd, ["img.png", "--calib", "c.yaml", "-o", "o.ply"]),
+                      (batch_cmd, ["frames", "--calib", "c.yaml", "-o", "out"])):
+        p = _Parser()
+        mod.add_arguments(p)
+        c = scan_cmd.clean_params_from_args(p.parse_args(head + ["--max-gap-px", "0", "--clean-param",
+                                                                  "gap_near_px=1"]))
+        assert (c.max_gap_px, c.gap_near_px) == (0, 1), mod.__name__
+        with pytest.raises(GBError, match="max_gap_px"):
+            scan_cmd.clean_params_from_args(p.parse_args(head + ["--max-gap-px", "-2"]))

@@ -53,6 +53,10 @@ def add_clean_arguments(parser, *, no_clean: bool = True) -> None:
     g.add_argument("--outlier-tol", type=float,
                    help="spikes: deviation from the neighbours' mean, as a fraction of depth (default 0.002)")
     g.add_argument("--min-cluster-px", type=int, help="drop connected pieces smaller than this (px)")
+    g.add_argument("--max-gap-px", type=int,
+                   help="depth edges across holes: compare run ends with the first point up to this many px "
+                        "beyond a hole (default 8, 0 disables; --clean-param gap_far_px=N / gap_near_px=N: how many px "
+                        "the farther / nearer run end loses, default 2 / 0)")
     g.add_argument("--clean-param", action="append", default=[], metavar="NAME=VALUE",
                    help="any other CleanParams field, e.g. normal_step_px=3 (repeatable)")
 
@@ -107,7 +111,7 @@ def clean_params_from_args(args, *, none_if_default: bool = False):
         kw["min_confidence"] = args.min_confidence
     if args.depth_range is not None:
         kw["min_depth_mm"], kw["max_depth_mm"] = args.depth_range
-    for name in ("max_jump", "max_angle_deg", "outlier_tol", "min_cluster_px"):
+    for name in ("max_jump", "max_angle_deg", "outlier_tol", "min_cluster_px", "max_gap_px"):
         if getattr(args, name) is not None:
             kw[name] = getattr(args, name)
     if none_if_default and not kw:

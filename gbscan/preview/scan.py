@@ -25,6 +25,7 @@ REASON_RGB = {
     "discontinuity": (250, 240, 60),
     "grazing": (60, 200, 220),
     "small_cluster": (240, 110, 200),
+    "gap_edge": (250, 150, 60),
 }
 
 
@@ -183,7 +184,7 @@ def save_coverage_picture(path, reason: np.ndarray) -> Path:
         ax.imshow(coverage_rgb(reason), interpolation="nearest")
         ax.set_axis_off()
         ax.set_title(f"coverage: {100 * float((reason == 0).mean()):.1f}% of pixels have a point")
-        handles = [Patch(color=np.array(REASON_RGB[REASONS[int(c)]]) / 255,
+        handles = [Patch(color=np.array(REASON_RGB.get(REASONS[int(c)], (128, 128, 128))) / 255,
                          label=f"{REASONS[int(c)]} {int(k)}") for c, k in zip(codes, n)]
         ax.legend(handles=handles, loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8, frameon=False)
         _save_figure(fig, path)
