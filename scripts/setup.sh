@@ -53,5 +53,16 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   fi
   echo "$want" > "$stamp"
 fi
+# 3. Optional: tkinter for the guided calibration's windows (in the stdlib, but Debian/Ubuntu's
+#    system Python ships it as the separate package python3-tk).  Never fatal.
+if ! "$venv/bin/python" -c "import tkinter" >/dev/null 2>&1; then
+  if [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1 && [ "$("$venv/bin/python" -c 'import sys; print(sys.base_prefix)')" = "/usr" ]; then
+    say "installing python3-tk (the guided calibration's windows) with apt-get"
+    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-tk; } >/dev/null 2>&1 ||
+      say "python3-tk not installed; scripts/guided_calibration.py will need it at a rig (--simulate works without)"
+  else
+    say "note: this Python has no tkinter; scripts/guided_calibration.py needs it at a rig (Debian/Ubuntu: sudo apt-get install python3-tk)"
+  fi
+fi
 export PATH="$venv/bin:$PATH"
 export VIRTUAL_ENV="$venv"
