@@ -473,7 +473,30 @@ def rim_rule(column_rel: np.ndarray, region: np.ndarray, reg_off_px: np.ndarray,
                                 int(params.rim_end_px), RIM, pull_out))
 
 
-def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: PatternSpec, params: DecodeParams) -> int:
+def _rim_rule_rows(column_rel, region, reg_off_px, reason, done, changed_rows, params: DecodeParams) -> np.ndarray:
+    """:func:`rim_rule` on ``reason`` where its result ``done`` for other inputs is known: the rule
+    at row ``v`` reads rows ``v - h .. v + h`` only (``h`` its half window), so ``done`` (updated
+    in place and returned) is recomputed on the rows within ``h`` of ``changed_rows`` (sorted,
+    the rows where the inputs differ), each band with ``h`` rows of context on either side."""
+    H = reason.shape[0]
+    h = max(1, int(round(math.sqrt(3.0) * float(params.blur_sigma_along_px))))
+    hit = np.zeros(H + 1, np.int32)
+    np.add.at(hit, np.clip(changed_rows - h, 0, H), 1)
+    np.add.at(hit, np.clip(changed_rows + h + 1, 0, H), -1)
+    redo = np.flatnonzero(np.cumsum(hit[:H]) > 0)
+    if redo.size == 0:
+        return done
+    cut = np.flatnonzero(np.diff(redo) > 1)
+    for a, b in zip(redo[np.r_[0, cut + 1]], redo[np.r_[cut, redo.size - 1]]):
+        lo, hi = max(int(a) - h, 0), min(int(b) + h, H - 1) + 1
+        band = reason[lo:hi].copy()
+        rim_rule(column_rel[lo:hi], region[lo:hi], reg_off_px, band, params)
+        done[a:b + 1] = band[a - lo:b + 1 - lo]
+    return done
+
+
+def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: PatternSpec, params: DecodeParams,
+                             memo: dict | None = None) -> int:
     """Index the components the markers cannot index alone through the reported pixels around
     them (:func:`gbscan.unwrap.link_components`); updates ``un`` (region, inconsistent,
     seg_region, stats) and ``idx`` (arrays extended by the new regions) in place and returns the
@@ -489,6 +512,8 @@ def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: Patt
         reason = cls.reason.copy()
         if params.rim_bias_px > 0 or params.rim_end_px > 0:
             rim_rule(column_rel, un.region, reg_off, reason, params)
+            if memo is not None:
+                memo["reason"] = reason  # the decoder reuses it (recomputed only near linked rows)
         return kernels.reported_columns(un.region, reason, un.inconsistent, cls.labels, column_rel, reg_off)
 
     lk = uw.link_components(cls.labels, un, idx, column_all, reported, pattern, params.unwrap)
@@ -496,9 +521,19 @@ def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: Patt
     if not lk.stats["components_linked"]:
         return n_reg
     segs = un.segments
-    region, _ = kernels.paint_regions(segs.seg, segs.rel, lk.seg_region.astype(np.int32), un.seg_P.astype(np.int32))
+    if _REUSE_LINK_WORK:  # the same region image as paint_regions, in place (no fresh pages)
+        region = un.region
+        kernels.repaint_regions(segs.seg, lk.seg_region.astype(np.int32), region)
+    else:
+        region, _ = kernels.paint_regions(segs.seg, segs.rel, lk.seg_region.astype(np.int32),
+                                          un.seg_P.astype(np.int32))
     un.region = region
     un.isolated = (segs.seg >= 0) & (region < 0)
+    if memo is not None:
+        # rows of the segments whose region or region offset the linking changed (the rim rule's
+        # inputs differ only there)
+        linked_seg = (lk.seg_region >= 0) & lk.linked[np.maximum(lk.seg_region, 0)]
+        memo["changed_rows"] = np.unique(segs.row[(lk.seg_region != un.seg_region) | linked_seg])
     un.seg_region = lk.seg_region
     un.inconsistent = uw.check_pixels(cls.labels, un.relative, region)
     n_new = int(lk.offset.size)
@@ -518,6 +553,11 @@ def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: Patt
 
 
 # -- everything ---------------------------------------------------------------------------------
+#: decode() reuses the linking's work (every segment's columns, the rim rule on the votes' copy of
+#: the reasons) where it is provably the same; False recomputes it as before (tests compare).
+_REUSE_LINK_WORK = True
+
+
 def empty_stripemap(shape, pattern: PatternSpec, reason: int, why: str, stats: dict | None = None) -> StripeMap:
     """A StripeMap reporting nothing, every pixel masked with ``reason``; ``stats['why']`` says why."""
     H, W = shape
@@ -692,22 +732,43 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     # relative columns for every region (consistent inside it; unknown multiple of 2*stripe_px)
     j_bnd = (segs.j_rel.astype(np.int64) + un.seg_P[segs.j_seg]).astype(np.float64) if segs.j_seg.size else \
         np.zeros(0, np.float64)
-    column_rel = kernels.interpolate_columns(H, W, segs.row, segs.u0, segs.u1, segs.j0, segs.j1,
-                                             (seg_reg >= 0).astype(np.uint8), jx.astype(np.float64), j_bnd,
-                                             float(pattern.stripe_px), float(params.extrapolate))
+    jx64 = jx.astype(np.float64)
+
+    def columns(seg_ok, column_all=None):
+        # interpolate_columns for the segments seg_ok; from column_all (every segment's) by a copy
+        # when it is at hand (same values: each pixel belongs to one segment span)
+        ok = seg_ok.astype(np.uint8)
+        if column_all is not None and _REUSE_LINK_WORK:
+            col, exact = kernels.select_columns(column_all, segs.row, segs.u0, segs.u1, ok)
+            if exact:
+                return col
+        return kernels.interpolate_columns(H, W, segs.row, segs.u0, segs.u1, segs.j0, segs.j1, ok, jx64, j_bnd,
+                                           float(pattern.stripe_px), float(params.extrapolate))
+
+    rim_done = None
     if params.unwrap.link_votes > 0 and pattern.markers and idx.indexed.any() and \
             (un.isolated.any() or not idx.indexed.all()):
         # every component's columns: the small / unindexed ones may be indexed through neighbours
-        column_all = kernels.interpolate_columns(H, W, segs.row, segs.u0, segs.u1, segs.j0, segs.j1,
-                                                 np.ones(segs.n, np.uint8), jx.astype(np.float64), j_bnd,
-                                                 float(pattern.stripe_px), float(params.extrapolate))
-        n_new = _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern, params)
+        column_all = columns(np.ones(segs.n, np.uint8))
+        column_rel = columns(seg_reg >= 0, column_all)
+        memo: dict = {}
+        n_new = _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern, params, memo)
         if n_new != n_reg or un.stats.get("link_components_linked", 0):
             n_reg = n_new
-            column_rel = kernels.interpolate_columns(H, W, segs.row, segs.u0, segs.u1, segs.j0, segs.j1,
-                                                     (un.seg_region >= 0).astype(np.uint8), jx.astype(np.float64),
-                                                     j_bnd, float(pattern.stripe_px), float(params.extrapolate))
-    if params.rim_bias_px > 0 or params.rim_end_px > 0:
+            column_rel = columns(un.seg_region >= 0, column_all)
+            if _REUSE_LINK_WORK and "reason" in memo:
+                # the votes' rim rule, again only on the rows whose window saw a linked segment
+                reg_off = np.where(idx.indexed, idx.offset * pattern.stripe_px, np.nan).astype(np.float32)
+                rim_done = _rim_rule_rows(column_rel, un.region, reg_off, cls.reason, memo["reason"],
+                                          memo["changed_rows"], params)
+        elif _REUSE_LINK_WORK:
+            # nothing linked: the rim rule the votes ran on a copy is the final one (same inputs)
+            rim_done = memo.get("reason")
+    else:
+        column_rel = columns(seg_reg >= 0)
+    if rim_done is not None:
+        np.copyto(cls.reason, rim_done)
+    elif params.rim_bias_px > 0 or params.rim_end_px > 0:
         reg_off = np.where(idx.indexed, idx.offset * pattern.stripe_px, np.nan).astype(np.float32)
         rim_rule(column_rel, un.region, reg_off, cls.reason, params)
     t6 = time.perf_counter()

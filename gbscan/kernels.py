@@ -476,6 +476,28 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
 
 
 @njit(cache=True, nogil=True)
+def select_columns(col_all, seg_row, seg_u0, seg_u1, seg_ok):
+    """The columns :func:`interpolate_columns` gives for the segments ``seg_ok`` (n_seg,) uint8,
+    taken from ``col_all`` (H, W) float32, its result for every segment: NaN outside the spans of
+    the accepted segments, a copy inside.  Exact when no two segment spans share a pixel, which is
+    checked (segments numbered row by row, left to right, spans disjoint); returns
+    ``(columns, True)``, or ``(empty, False)`` when the check fails (the caller interpolates).
+    Saves the interpolation's per-pixel work when both results are needed (the decoder's linking)."""
+    n = seg_row.shape[0]
+    for s in range(1, n):
+        if seg_row[s] < seg_row[s - 1] or (seg_row[s] == seg_row[s - 1] and seg_u0[s] <= seg_u1[s - 1]):
+            return np.empty((0, 0), np.float32), False
+    H, W = col_all.shape
+    col = np.full((H, W), np.nan, np.float32)
+    for s in range(n):
+        if seg_ok[s]:
+            v = seg_row[s]
+            for u in range(seg_u0[s], seg_u1[s] + 1):
+                col[v, u] = col_all[v, u]
+    return col, True
+
+
+@njit(cache=True, nogil=True)
 def link_votes(comp, col_rel, col_abs, max_gap_px):
     """Column-continuity votes of reported pixels for the offset of unindexed components.
 
@@ -543,6 +565,29 @@ def component_pixels(seg, seg_comp, col):
             s = seg[v, u]
             if s >= 0 and seg_comp[s] >= 0:
                 comp[v, u] = seg_comp[s]
+                out[v, u] = col[v, u]
+                if not np.isnan(col[v, u]):
+                    n += 1
+    return comp, out, n
+
+
+@njit(cache=True, nogil=True)
+def component_pixels_spans(seg, seg_comp, col, seg_row, seg_u0, seg_u1):
+    """:func:`component_pixels` visiting only the spans of the segments with ``seg_comp >= 0``
+    (a segment's pixels lie in its span ``seg_row, seg_u0 .. seg_u1``): the same three results,
+    without a pass over the whole image when few segments are candidates."""
+    H, W = seg.shape
+    comp = np.full((H, W), -1, np.int32)
+    out = np.full((H, W), np.nan, np.float32)
+    n = 0
+    for s in range(seg_row.shape[0]):
+        c = seg_comp[s]
+        if c < 0:
+            continue
+        v = seg_row[s]
+        for u in range(seg_u0[s], seg_u1[s] + 1):
+            if seg[v, u] == s:
+                comp[v, u] = c
                 out[v, u] = col[v, u]
                 if not np.isnan(col[v, u]):
                     n += 1
@@ -1569,6 +1614,91 @@ def region_histograms(labels, relative, region, n_reg):
 
 
 @njit(cache=True, nogil=True)
+def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px):
+    """The marker matched filter of :func:`gbscan.unwrap.index_regions` for every region, from
+    :func:`region_histograms`: integer counts, the same sums as its ``np.correlate`` form.
+
+    Per region ``k`` returns (all (n_reg,) int64): ``status`` 0 empty, 1 too thin (no relative
+    index with ``min_marker_px`` pixels), 2 no candidate offset, 3 scored; ``seen`` marker stripes
+    seen; for scored regions the ``offset`` (absolute - relative) of the best candidate (first
+    minimum), its ``evidence`` and ``mismatch`` and the ``runner_up`` (second smallest mismatch,
+    ``2**63 // 4`` when there is one candidate).  Candidate absolute index ``A`` of relative
+    ``rmin``: ``A + c0 >= -2``, ``A + c1 <= n_st + 1`` (``c0, c1`` the core's ends), ``A - rmin`` even;
+    positions outside the pattern mismatch every observation."""
+    n_reg = rmin.shape[0]
+    n_st = is_marker.shape[0]
+    status = np.zeros(n_reg, np.int64)
+    seen = np.zeros(n_reg, np.int64)
+    offset = np.zeros(n_reg, np.int64)
+    evidence = np.zeros(n_reg, np.int64)
+    mismatch = np.zeros(n_reg, np.int64)
+    runner = np.zeros(n_reg, np.int64)
+    big = np.iinfo(np.int64).max // 4
+    for k in range(n_reg):
+        r0 = rmin[k]
+        r1 = rmax[k]
+        if r1 < r0:
+            continue
+        span = r1 - r0 + 1
+        b0 = start[k]
+        n_seen = 0
+        c0 = -1
+        c1 = -1
+        sum_c = 0
+        for j in range(span):
+            if n_c[b0 + j] >= min_marker_px:
+                n_seen += 1
+            if n_c[b0 + j] + n_g[b0 + j] >= min_marker_px:
+                if c0 < 0:
+                    c0 = j
+                c1 = j
+            sum_c += n_c[b0 + j]
+        seen[k] = n_seen
+        if c0 < 0:
+            status[k] = 1
+            continue
+        status[k] = 2
+        best_mis = big
+        best_A = 0
+        best_exp = 0
+        second = big
+        n_cand = 0
+        # A = absolute index of relative r0; the extended position i = A + span (pad = span)
+        for A in range(-span, n_st + 1):
+            if A + c0 < -2 or A + c1 > n_st + 1 or (A - r0) % 2 != 0:
+                continue
+            mis = 0
+            exp = 0
+            for j in range(span):
+                a = A + j
+                c = n_c[b0 + j]
+                g = n_g[b0 + j]
+                if a < 0 or a >= n_st:      # outside: not a marker (cyan mismatches), O = 1
+                    mis += c + g
+                elif is_marker[a]:
+                    mis += g
+                    exp += c + g
+                else:
+                    mis += c
+            n_cand += 1
+            if mis < best_mis:
+                second = best_mis
+                best_mis = mis
+                best_A = A
+                best_exp = exp
+            elif mis < second:
+                second = mis
+        if n_cand == 0:
+            continue
+        status[k] = 3
+        offset[k] = best_A - r0
+        evidence[k] = sum_c + best_exp
+        mismatch[k] = best_mis
+        runner[k] = second if n_cand > 1 else big
+    return status, seen, offset, evidence, mismatch, runner
+
+
+@njit(cache=True, nogil=True)
 def paint_regions(seg, rel, seg_region, seg_P):
     """Per pixel: region id of its segment (-1) and relative index ``rel + P[segment]``."""
     H, W = seg.shape
@@ -1581,6 +1711,18 @@ def paint_regions(seg, rel, seg_region, seg_P):
                 region[v, u] = seg_region[s]
                 relative[v, u] = rel[v, u] + seg_P[s]
     return region, relative
+
+
+@njit(cache=True, nogil=True)
+def repaint_regions(seg, seg_region, region):
+    """In place: ``region`` (H, W) int32 becomes the region image of :func:`paint_regions`
+    (``seg_region[seg]``, -1 where ``seg < 0``) without allocating (the decoder's linking
+    repaints after giving components regions)."""
+    H, W = seg.shape
+    for v in range(H):
+        for u in range(W):
+            s = seg[v, u]
+            region[v, u] = seg_region[s] if s >= 0 else -1
 
 
 @njit(cache=True, nogil=True)
@@ -2151,3 +2293,29 @@ def mask_rejected(reason, xyz, normals):
                 for c in range(3):
                     xyz[v, u, c] = np.nan
                     normals[v, u, c] = np.nan
+
+
+@njit(cache=True, nogil=True)
+def window_slopes(img, comp, want, rows, cols, half_px, min_span_px):
+    """(n,) float64 slope of ``img`` (H, W) float32 along row ``rows[i]`` between the outermost
+    finite pixels within ``cols[i] +- half_px`` (those of component ``want[i]`` in ``comp`` when
+    ``want[i] >= 0``), NaN when the row is outside the image or they span fewer than
+    ``min_span_px`` px."""
+    H, W = img.shape
+    n = rows.shape[0]
+    out = np.full(n, np.nan, np.float64)
+    for i in range(n):
+        r = rows[i]
+        if r < 0 or r >= H:
+            continue
+        a = -1
+        b = -1
+        for x in range(max(cols[i] - half_px, 0), min(cols[i] + half_px, W - 1) + 1):
+            if np.isnan(img[r, x]) or (want[i] >= 0 and comp[r, x] != want[i]):
+                continue
+            if a < 0:
+                a = x
+            b = x
+        if a >= 0 and b - a >= min_span_px:
+            out[i] = (img[r, b] - img[r, a]) / (b - a)
+    return out

@@ -1,8 +1,9 @@
 """Speed and memory of the single-shot decoder, with peers on equivalent frames.
 
-    python scripts/bench_decode.py [--runs N] [--threads 1]
+    python scripts/bench_decode.py [--runs N] [--threads 1] [--scene plane|head|multi_object] [--preset typical]
 
-Renders a plane at 650 mm once per size (640x480 with the paper's rig; 1280x1024 with the same
+Renders a plane at 650 mm (or ``--scene``: the head, the multi-object scene, at their default
+distance; ``--preset`` the conditions) once per size (640x480 with the paper's rig; 1280x1024 with the same
 lens scaled, supersample 1 to keep rendering short), then prints the median milliseconds per
 decoder stage and in total over N runs, and peak memory (tracemalloc: numpy buffers; OpenCV's
 own buffers are not traced).  Peers on the same sizes:
@@ -43,14 +44,14 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def frames(width: int):
+def frames(width: int, scene: str = "plane", preset: str = "typical"):
     from gbscan import sim
     from gbscan.camera import Camera
     from gbscan.pattern import PatternSpec, render_pattern
     from gbscan.rig import Rig
 
     rig = sim.paper_rig()
-    cond = sim.preset("typical")
+    cond = sim.preset(preset)
     if width != 640:
         s = width / 640.0
         cam = rig.camera
@@ -59,8 +60,9 @@ def frames(width: int):
                      cam.dist)
         rig = Rig(big, rig.projector, rig.R_cam_proj, rig.t_cam_proj)
         cond = replace(cond, supersample=1)
-    log(f"rendering {rig.camera.width}x{rig.camera.height} ...")
-    r = sim.render(rig, sim.scenes.plane(distance_mm=650), render_pattern(PatternSpec()), cond, seed=0)
+    log(f"rendering {scene} {rig.camera.width}x{rig.camera.height} ...")
+    sc = sim.scenes.plane(distance_mm=650) if scene == "plane" else getattr(sim.scenes, scene)()
+    r = sim.render(rig, sc, render_pattern(PatternSpec()), cond, seed=0)
     return r
 
 
@@ -147,6 +149,9 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", type=int, default=15)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--sizes", default="640,1280")
+    ap.add_argument("--scene", default="plane", choices=("plane", "head", "multi_object"))
+    ap.add_argument("--preset", default="typical", choices=("clean", "typical", "hard"))
+    ap.add_argument("--no-peers", action="store_true", help="decoder figures only (skip FTP and Gray code)")
     args = ap.parse_args(argv)
 
     import cv2
@@ -158,9 +163,9 @@ def main(argv=None) -> int:
     cv2.setNumThreads(args.threads)
     numba.set_num_threads(max(1, min(args.threads, numba.config.NUMBA_NUM_THREADS)))
     spec = PatternSpec()
-    print(f"# decoder benchmark, {args.threads} thread(s), median of {args.runs} runs (ms)")
+    print(f"# decoder benchmark, {args.scene} ({args.preset}), {args.threads} thread(s), median of {args.runs} runs (ms)")
     for w in (int(x) for x in args.sizes.split(",")):
-        r = frames(w)
+        r = frames(w, args.scene, args.preset)
         img = r.image
         H, W = img.shape[:2]
         log("warming up (numba kernels) ...")
@@ -177,6 +182,8 @@ def main(argv=None) -> int:
               f"cpu {cpu:.2f} ms, {faults:.0f} page faults/frame, reported {sm.valid.mean() * 100:.1f}% of pixels")
         print(f"   peak numpy memory {mem:.1f} MB = {mem * 2 ** 20 / (H * W):.0f} bytes/px (workspace included)")
         print("   stages: " + "  ".join(f"{k} {v:.2f}" for k, v in stages.items() if k != "total"))
+        if args.no_peers:
+            continue
         ftp = ftp_peer(img)
         t_ftp, _ = median_ms(ftp, max(3, args.runs // 3))
         m_ftp = peak_mb(ftp)

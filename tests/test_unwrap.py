@@ -234,3 +234,27 @@ def test_link_params_are_validated():
         uw.UnwrapParams(link_tol_px=5.0)
     with pytest.raises(GBError, match="link_votes"):
         uw.UnwrapParams(link_votes=-1)
+
+
+def test_component_pixels_over_spans_equals_the_image_pass():
+    """kernels.component_pixels_spans (link_components' fast form) against the whole-image pass,
+    on the segments of a simulated multi-object frame with random candidate components."""
+    from gbscan import kernels, sim
+    from gbscan.decode import decode
+    from gbscan.pattern import PatternSpec, render_pattern
+    from gbscan.unwrap import unroll_rows, cut_depth_edges
+
+    r = sim.render(sim.paper_rig(), sim.scenes.multi_object(), render_pattern(PatternSpec()), "typical", seed=0)
+    sm = decode(r.image, PatternSpec())
+    segs = unroll_rows(sm.labels)
+    segs.j_x = np.linspace(0, 600, segs.j_seg.size).astype(np.float32) % 37  # spacing jumps: cuts
+    segs = cut_depth_edges(segs, 1.35)
+    rng = np.random.default_rng(0)
+    col = np.where(rng.random(sm.labels.shape) < 0.9, rng.normal(300, 50, sm.labels.shape), np.nan).astype(np.float32)
+    for frac in (0.0, 0.1, 1.0):
+        seg_comp = np.where(rng.random(segs.n) < frac, rng.integers(0, 50, segs.n), -1).astype(np.int32)
+        a = kernels.component_pixels(segs.seg, seg_comp, col)
+        b = kernels.component_pixels_spans(segs.seg, seg_comp, col, segs.row, segs.u0, segs.u1)
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])
+        assert a[2] == b[2] and (frac == 0 or a[2] > 0)
