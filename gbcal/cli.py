@@ -25,5 +25,12 @@ def main(argv=None) -> int:
     return run_cli("gbcal", DESCRIPTION, "gbcal", available_stages("gbcal", STAGES), argv)
 
 
+def entry() -> None:
+    """The console script: :func:`main`, then a fast exit (:func:`gbscan.cli_common.exit_now`)."""
+    from gbscan.cli_common import exit_now
+
+    exit_now(main)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

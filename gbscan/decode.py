@@ -13,7 +13,10 @@ Pipeline (each step a named function; the paper's steps 1-4, then beyond the pap
 5. :func:`gbscan.unwrap.index_regions` -- absolute index per region from the cyan markers; regions
    and small components the markers cannot index alone are indexed through the reported pixels
    around them where the projector column continues unambiguously
-   (:func:`gbscan.unwrap.link_components`), else dropped and counted.
+   (:func:`gbscan.unwrap.link_components`), else dropped and counted.  Rows whose own markers
+   contradict their region's offset (a strip of another surface welded in) are dropped as
+   unindexed (:func:`gbscan.unwrap.marker_conflicts`; before linking, and for the linked regions
+   after it).
 6. :func:`subpixel_boundaries` + column interpolation -- stripe boundaries to a fraction of a
    camera pixel, then each pixel's continuous projector column.
 
@@ -22,6 +25,7 @@ projector columns in projector px with boundary ``k`` at ``k * stripe_px - 0.5``
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import threading
@@ -81,10 +85,24 @@ class DecodeParams:
         cleaning; kept % of lit non-edge pixels / depth RMS mm): head 0.4: 83.2/0.278,
         0.55: 84.3/0.298, 0.6: 84.6/0.302, 0.8: 85.8/0.322, 1.2: 86.7/0.351 (and a wrong pixel);
         sphere 0.4: 88.7/0.149, 0.55: 89.3/0.159, 0.8: 90.2/0.183 (2 pixels > half a stripe off).
+        With the rim guard and end rows (below) on, the kept pixels are better and 0.7 is the
+        default (seeds 0-2, kept % / RMS mm / worst mm): head 0.55: 81.0-81.7/0.25-0.26/2.54,
+        0.7: 81.9-82.7/0.26-0.27/2.54, 0.8: 82.2-83.1/0.27-0.28/2.98, 1.0: 82.6-83.6/0.28-0.29/3.47;
+        sphere 0.7: 88.3-88.7/0.14/2.14, 1.0: 89.0-89.3/0.16/2.37.
     rim_end_px : pixels at most this far (camera px) from the end of their row's stretch of
         decoded columns, and as close to a dark / saturated / low-contrast pixel, are masked "rim"
         (left/right silhouettes and shadow edges: the local min/max windows mix in the background;
         0: never).
+    rim_guard_px : reported pixels at most this many rows above or below a striped pixel the
+        decoder could not index (unindexed, isolated) are masked "rim" (0: never).  At a
+        horizontal silhouette over a surface the decoder drops, the along-stripe blur carries the
+        reported surface's stripes 1-2 rows onto the dropped one, where they would be triangulated
+        on the wrong surface; nothing in the columns shows it.  See :func:`rim_guard`.
+    rim_end_rows : reported pixels at most this many rows above or below a pixel without signal
+        (dark, saturated, low contrast) or masked "rim" are masked "rim" (0: never): the top and
+        bottom ends of a surface's stretch along the stripes, where the blur's weights are one-sided
+        and the pull rule, which sees only the decoded rows, underestimates the pull (head: the
+        end row was up to 2.8 projector px off).
     """
 
     blur_sigma_along_px: float = 2.0
@@ -103,8 +121,10 @@ class DecodeParams:
     raw_margin: float = 0.3
     extrapolate: float = 0.75
     unwrap: UnwrapParams = field(default_factory=UnwrapParams)
-    rim_bias_px: float = 0.55
+    rim_bias_px: float = 0.7
     rim_end_px: int = 1
+    rim_guard_px: int = 2
+    rim_end_rows: int = 1
 
     def __post_init__(self):
         def bad(name, why):
@@ -128,6 +148,10 @@ class DecodeParams:
             bad("unwrap", "must be an UnwrapParams")
         if not (float(self.rim_bias_px) >= 0) or int(self.rim_end_px) < 0:
             bad("rim_bias_px/rim_end_px", "must be >= 0 (0 disables the rule)")
+        for name in ("rim_guard_px", "rim_end_rows"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not float(v).is_integer() or int(v) < 0:
+                bad(name, f"must be a whole number of rows >= 0 (0 disables the rule), got {v!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -473,6 +497,37 @@ def rim_rule(column_rel: np.ndarray, region: np.ndarray, reg_off_px: np.ndarray,
                                 int(params.rim_end_px), RIM, pull_out))
 
 
+def rim_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confidence: np.ndarray,
+              rows: int, counts: np.ndarray | None = None, end_rows: int = 0) -> int:
+    """Mask ``RIM`` the reported pixels within ``rows`` rows (along the stripes) of a pixel whose
+    reason is ``UNINDEXED`` or ``ISOLATED``, and within ``end_rows`` rows of a pixel without
+    signal (``DARK``, ``SATURATED``, ``LOW_CONTRAST``) or masked ``RIM``; returns their count.
+
+    mask : (H, W) uint8 reason codes; column (H, W) float32, stripe (H, W) int32, confidence
+    (H, W) float32: set to NaN / -1 / 0 where masked.  All updated in place, as is ``counts``
+    (n_codes,) when given.  Why: the motion blur (paper step 1) runs along the stripes, so at a
+    horizontal depth edge it carries each surface's stripes onto the other for about its half
+    width.  Where both sides are reported, :func:`rim_rule` sees the pull; where the other side is
+    a surface the decoder drops (its index uncertain, or too small), the carried stripes decode
+    as a clean continuation of the reported surface, 1-2 rows into the dropped one.
+    """
+    rows, end_rows = int(rows), int(end_rows)
+    if rows <= 0 and end_rows <= 0:
+        return 0
+    from . import kernels
+
+    ws = getattr(_THREAD, "workspace", None)  # the fast path's scratch when it has one this size
+    near = ws.near if ws is not None and ws.shape == mask.shape else np.empty(mask.shape, np.uint8)
+    assert (DARK, SATURATED, LOW_CONTRAST) == (1, 2, 3)  # the kernel's [b_lo, b_hi] range
+    n = int(kernels.rim_guard_rows(mask, column, stripe, confidence, UNINDEXED, ISOLATED, DARK, LOW_CONTRAST, RIM,
+                                   min(rows, 999) if rows > 0 else -1, min(end_rows, 999) if end_rows > 0 else -1,
+                                   OK, RIM, near))
+    if n and counts is not None:
+        counts[OK] -= n
+        counts[RIM] += n
+    return n
+
+
 def _rim_rule_rows(column_rel, region, reg_off_px, reason, done, changed_rows, params: DecodeParams) -> np.ndarray:
     """:func:`rim_rule` on ``reason`` where its result ``done`` for other inputs is known: the rule
     at row ``v`` reads rows ``v - h .. v + h`` only (``h`` its half window), so ``done`` (updated
@@ -582,7 +637,7 @@ class _Workspace:
     """Per-thread scratch of the fast path for one frame size: linear and blurred green and blue,
     the raw maximum, and the classification images that never leave :func:`decode` (reason, gn,
     bn, contrast; the StripeMap copies what it keeps).  Reused from frame to frame: fresh pages
-    cost more than the arithmetic here (a page fault each 4 KiB).  30 bytes per pixel per
+    cost more than the arithmetic here (a page fault each 4 KiB).  31 bytes per pixel per
     decoding thread."""
 
     def __init__(self, H: int, W: int):
@@ -596,6 +651,7 @@ class _Workspace:
         self.bn = np.empty((H, W), np.float32)
         self.contrast = np.empty((H, W), np.float32)
         self.reason = np.empty((H, W), np.uint8)
+        self.near = np.empty((H, W), np.uint8)  # rim_guard's flags
 
 
 _THREAD = threading.local()
@@ -720,7 +776,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     idx = uw.index_regions(cls.labels, un.relative, un.region, n_reg, pattern, params.unwrap)
     # stretches of rows whose own markers contradict their region's offset (a surface welded in
     # across a depth edge): reported as unindexed.  finish_pixels keeps any non-zero input reason.
-    for v, a, b in uw.marker_conflicts(cls.labels, un, idx, pattern, params.unwrap).tolist():
+    for v, a, b in uw.marker_conflicts(cls.labels, un, idx, pattern, params.unwrap, cls.gn, cls.bn).tolist():
         row = cls.reason[v, a:b + 1]
         row[row == OK] = UNINDEXED
     t5 = time.perf_counter()
@@ -746,6 +802,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
                                            float(pattern.stripe_px), float(params.extrapolate))
 
     rim_done = None
+    late_spans = None
     if params.unwrap.link_votes > 0 and pattern.markers and idx.indexed.any() and \
             (un.isolated.any() or not idx.indexed.all()):
         # every component's columns: the small / unindexed ones may be indexed through neighbours
@@ -755,6 +812,11 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         n_new = _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern, params, memo)
         if n_new != n_reg or un.stats.get("link_components_linked", 0):
             n_reg = n_new
+            # the linked regions' own rows against their markers, as the marker-indexed ones
+            # above (a linked region may carry a strip of another surface welded in)
+            linked = np.array([w == "linked" for w in idx.why], bool)
+            late_spans = uw.marker_conflicts(cls.labels, un, dataclasses.replace(idx, indexed=idx.indexed & linked),
+                                             pattern, params.unwrap, cls.gn, cls.bn)
             column_rel = columns(un.seg_region >= 0, column_all)
             if _REUSE_LINK_WORK and "reason" in memo:
                 # the votes' rim rule, again only on the rows whose window saw a linked segment
@@ -771,6 +833,10 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     elif params.rim_bias_px > 0 or params.rim_end_px > 0:
         reg_off = np.where(idx.indexed, idx.offset * pattern.stripe_px, np.nan).astype(np.float32)
         rim_rule(column_rel, un.region, reg_off, cls.reason, params)
+    if late_spans is not None:
+        for v, a, b in late_spans.tolist():
+            row = cls.reason[v, a:b + 1]
+            row[row == OK] = UNINDEXED
     t6 = time.perf_counter()
     ms["subpixel"] = (t6 - t5) * 1e3
 
@@ -789,6 +855,8 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         cls.reason, cls.labels, region, un.relative, column_rel, un.inconsistent, reg_shift, reg_indexed,
         reg_margin, cls.contrast, int(pattern.stripe_px), int(pattern.n_stripes), float(params.min_contrast),
         len(REASONS))
+    if params.rim_guard_px > 0 or params.rim_end_rows > 0:
+        rim_guard(mask, column, stripe, conf, params.rim_guard_px, counts, params.rim_end_rows)
     t7 = time.perf_counter()
     ms["finish"] = (t7 - t6) * 1e3
     ms["total"] = (t7 - t0) * 1e3

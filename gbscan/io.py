@@ -142,7 +142,8 @@ def load_yaml(path, what: str = "YAML file") -> dict:
     if not path.is_file():
         raise GBError(f"{what} {path} does not exist")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        # libyaml's loader when PyYAML has it (the calibration file: 17 ms instead of 115 ms)
+        data = yaml.load(path.read_text(encoding="utf-8"), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
     except (yaml.YAMLError, UnicodeDecodeError) as e:
         raise GBError(f"{what} {path} is not valid YAML ({_first_line(e)}); fix or regenerate it") from None
     if not isinstance(data, dict):

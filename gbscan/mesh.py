@@ -100,16 +100,17 @@ def triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted vertex normals (V, 3); zero for vertices in no triangle."""
-    v = np.asarray(vertices, dtype=np.float64)
-    V = len(v)
-    n = np.zeros((V, 3))
+    from . import geomkernels as gk
+
+    v = np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
+    n = np.zeros((len(v), 3))
     if len(triangles) == 0:
         return n
-    fn, idx = _face_cross(v, np.asarray(triangles))
-    for c in range(3):
-        n[:, c] = sum(np.bincount(i, weights=fn[c], minlength=V) for i in idx)
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+    t = np.ascontiguousarray(triangles, dtype=np.int64).reshape(-1, 3)
+    if t.min() < 0 or t.max() >= len(v):
+        raise GBError("vertex_normals: triangle indices out of range")
+    gk.area_weighted_normals(v, t, np.ones(len(v), bool), n)  # compiled: np.bincount's sums, in its order
+    return n
 
 
 def grid_mesh(xyz: np.ndarray, valid: np.ndarray | None = None, *, max_jump: float = 0.01,
@@ -121,47 +122,44 @@ def grid_mesh(xyz: np.ndarray, valid: np.ndarray | None = None, *, max_jump: flo
     max_jump : a quad is cut when its depths span more than ``max_jump`` times its nearest depth
         (no triangles across depth discontinuities).
     normals : optional (H, W, 3) normals of the grid (e.g. ``Scan.normals_map``) to use as vertex
-        normals; default: area-weighted from the triangles.
+        normals where they are finite and non-zero; area-weighted from the triangles elsewhere,
+        and everywhere without ``normals``.
 
     Vertices are the valid pixels used by a triangle, in raster order (``Mesh.pixel`` gives their
     (row, col)); triangles face the camera.
     """
+    from . import geomkernels as gk
+
     xyz = np.asarray(xyz)
     if xyz.ndim != 3 or xyz.shape[2] != 3:
         raise GBError(f"grid_mesh: expected an organised (H, W, 3) point map, got {xyz.shape}")
     H, W = xyz.shape[:2]
-    z = (xyz[..., 0] + xyz[..., 1] + xyz[..., 2]) * 0 + xyz[..., 2]  # NaN unless all three finite
-    z = z.astype(np.float32)
-    if valid is not None:
-        z[~valid] = np.nan
-    a, b, c, d = z[:-1, :-1], z[1:, :-1], z[:-1, 1:], z[1:, 1:]  # a=(v,u) b=(v+1,u) c=(v,u+1) d=(v+1,u+1)
-    with np.errstate(invalid="ignore"):
-        zmin = np.minimum(np.minimum(a, b), np.minimum(c, d))  # NaN if any is NaN
-        zmax = np.maximum(np.maximum(a, b), np.maximum(c, d))
-        quad = zmax - zmin <= np.float32(max_jump) * zmin  # False where NaN
-    used = np.zeros((H, W), bool)
-    used[:-1, :-1] |= quad
-    used[1:, :-1] |= quad
-    used[:-1, 1:] |= quad
-    used[1:, 1:] |= quad
-    rows, cols = np.nonzero(used)
-    index = np.full((H, W), -1, np.int64)
-    index[rows, cols] = np.arange(rows.size)
-    qv, qu = np.nonzero(quad)
-    ia, ib = index[qv, qu], index[qv + 1, qu]
-    ic, id_ = index[qv, qu + 1], index[qv + 1, qu + 1]
-    # (a, b, c): (+y) x (+x) = -z, i.e. facing the camera; (c, b, d) likewise.
-    tris = np.empty((2 * qv.size, 3), np.int64)
-    tris[0::2, 0], tris[0::2, 1], tris[0::2, 2] = ia, ib, ic
-    tris[1::2, 0], tris[1::2, 1], tris[1::2, 2] = ic, ib, id_
-    verts = xyz[rows, cols].astype(np.float64)
-    mesh = Mesh(verts, tris, pixel=np.stack([rows, cols], axis=1).astype(np.int32))
-    if normals is not None:
-        n = np.asarray(normals)[rows, cols].astype(np.float64)
-        if np.isfinite(n).all() and np.all(np.abs(n).sum(axis=1) > 0):
-            mesh.vertex_normals = n
-    if mesh.vertex_normals is None:
-        mesh.vertex_normals = vertex_normals(verts, tris)
+    if xyz.dtype not in (np.float32, np.float64):
+        xyz = xyz.astype(np.float64)
+    xyz = np.ascontiguousarray(xyz)
+    use_valid = valid is not None
+    valid = np.ascontiguousarray(valid, dtype=bool) if use_valid else np.zeros((H, W), bool)
+    if valid.shape != (H, W):
+        raise GBError(f"grid_mesh: valid is {valid.shape}, expected {(H, W)}")
+    use_normals = normals is not None
+    if use_normals:
+        normals = np.asarray(normals)
+        if normals.shape != (H, W, 3):
+            raise GBError(f"grid_mesh: normals are {normals.shape}, expected {(H, W, 3)}")
+        if normals.dtype not in (np.float32, np.float64):
+            normals = normals.astype(np.float64)
+        normals = np.ascontiguousarray(normals)
+    else:
+        normals = np.zeros((1, 1, 3))
+    # one compiled pass: depths, quads, vertex numbering, triangles, vertex normals
+    verts, tris, pixel, vn, has_normal = gk.grid_mesh_arrays(xyz, valid, use_valid, np.float32(max_jump), normals,
+                                                             use_normals)
+    mesh = Mesh(verts, tris, pixel=pixel)
+    if not use_normals:
+        vn = vertex_normals(verts, tris)
+    elif not has_normal.all():  # area-weighted where the grid has no normal, only there
+        gk.area_weighted_normals(verts, tris, ~has_normal, vn)
+    mesh.vertex_normals = vn
     return mesh
 
 
@@ -312,6 +310,31 @@ def write_cloud_ply(path, points: np.ndarray, normals: np.ndarray | None = None,
     return _write_ply(path, rec, None, comments)
 
 
+def write_grid_cloud_ply(path, xyz: np.ndarray, normals: np.ndarray, confidence: np.ndarray,
+                         reason: np.ndarray) -> Path:
+    """Write the kept pixels (``reason == 0``) of an organised scan as the PLY of
+    :func:`write_cloud_ply` with normals, confidence, pixel and grid size -- the same bytes --
+    in one compiled pass over the maps (no per-field gathers).
+
+    xyz, normals : (H, W, 3) float32; confidence : (H, W) float32; reason : (H, W) uint8.
+    """
+    from . import geomkernels as gk
+
+    reason = np.ascontiguousarray(reason, dtype=np.uint8)
+    H, W = reason.shape
+    for name, a, shape in (("xyz", xyz, (H, W, 3)), ("normals", normals, (H, W, 3)),
+                           ("confidence", confidence, (H, W))):
+        if np.shape(a) != shape:
+            raise GBError(f"write_grid_cloud_ply: {name} is {np.shape(a)}, expected {shape}")
+    n = int(np.count_nonzero(reason == 0))
+    arr = np.empty((n, 9), np.float32)
+    gk.pack_cloud(np.ascontiguousarray(xyz, dtype=np.float32), np.ascontiguousarray(normals, dtype=np.float32),
+                  np.ascontiguousarray(confidence, dtype=np.float32), reason, True, True, True, arr, arr.view(np.int32))
+    fields = [(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz", "confidence")] + [("row", "<i4"), ("col", "<i4")]
+    comments = ["gbscan point cloud, camera frame (x right, y down, z forward), mm", f"gbscan_grid {W} {H}"]
+    return _write_ply(path, arr.view(np.dtype(fields)).reshape(-1), None, comments)
+
+
 def read_cloud_ply(path) -> Cloud:
     """Read the vertices of a PLY file (binary or ASCII) into a :class:`Cloud`.
 
@@ -413,15 +436,18 @@ def _write_ply(path, vertex_rec: np.ndarray, faces: np.ndarray | None, comments:
         lines.append(f"element face {len(faces)}")
         lines.append("property list uchar int vertex_indices")
     lines.append("end_header")
+    fbuf = None
+    if faces is not None:  # records "uchar 3, int32 a b c": 13 bytes, packed by a kernel
+        from . import geomkernels as gk
+
+        fbuf = np.empty(13 * len(faces), np.uint8)
+        gk.pack_ply_faces(np.ascontiguousarray(faces, dtype=np.int64), fbuf)
     with atomic_path(path, suffix=".ply") as tmp:
         with open(tmp, "wb") as fh:
             fh.write(("\n".join(lines) + "\n").encode("ascii"))
-            fh.write(vertex_rec.tobytes())
-            if faces is not None:
-                frec = np.empty(len(faces), dtype=np.dtype([("n", "u1"), ("v", "<i4", (3,))]))
-                frec["n"] = 3
-                frec["v"] = faces
-                fh.write(frec.tobytes())
+            fh.write(memoryview(np.ascontiguousarray(vertex_rec)).cast("B"))
+            if fbuf is not None:
+                fh.write(memoryview(fbuf))
     return Path(path)
 
 
@@ -435,33 +461,64 @@ def write_mesh(path, mesh: Mesh) -> Path:
         raise GBError(f"cannot write mesh {path}: the name must end in {', '.join(MESH_SUFFIXES)}")
     if mesh.n_triangles == 0:
         raise GBError(f"not writing {path}: the mesh has no triangles")
+    from . import geomkernels as gk
+
     v = mesh.vertices
     n = np.nan_to_num(mesh.normals())
     if suffix == ".ply":
-        rec = np.empty(len(v), dtype=np.dtype([(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz")]))
-        rec["x"], rec["y"], rec["z"] = v[:, 0], v[:, 1], v[:, 2]
-        rec["nx"], rec["ny"], rec["nz"] = n[:, 0], n[:, 1], n[:, 2]
+        arr = np.empty((len(v), 6), np.float32)  # x y z nx ny nz, viewed as the vertex records
+        arr[:, :3] = v
+        arr[:, 3:] = n
+        rec = arr.view(np.dtype([(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz")])).reshape(-1)
         return _write_ply(path, rec, mesh.triangles, ["gbscan mesh, camera frame, mm"])
     if suffix == ".obj":
+        parts = [b"# gbscan mesh, camera frame (x right, y down, z forward), mm\n",
+                 _obj_rows(b"v", v, 4), _obj_rows(b"vn", n, 5)]
+        t = np.ascontiguousarray(mesh.triangles, dtype=np.int64)
+        fbuf = np.empty(len(t) * (2 + 3 * (3 + 2 * _n_digits(len(v)))), np.uint8)
+        parts.append(memoryview(fbuf[:gk.format_obj_faces(t, fbuf)]))
         with atomic_path(path, suffix=".obj") as tmp:
-            with open(tmp, "w", encoding="ascii") as fh:
-                fh.write("# gbscan mesh, camera frame (x right, y down, z forward), mm\n")
-                fh.write(("v %.4f %.4f %.4f\n" * len(v)) % tuple(v.ravel()))
-                fh.write(("vn %.5f %.5f %.5f\n" * len(n)) % tuple(n.ravel()))
-                t = np.repeat(mesh.triangles + 1, 2, axis=1)  # 1-based, v//vn share the index
-                fh.write(("f %d//%d %d//%d %d//%d\n" * len(t)) % tuple(t.ravel()))
+            with open(tmp, "wb") as fh:
+                for part in parts:
+                    fh.write(part)
         return path
-    # .stl
-    tn = triangle_normals(v, mesh.triangles)
-    rec = np.zeros(mesh.n_triangles, dtype=np.dtype([("n", "<f4", (3,)), ("v", "<f4", (3, 3)), ("a", "<u2")]))
-    rec["n"] = tn
-    rec["v"] = v[mesh.triangles]
+    # .stl: 80-byte header, count, then per triangle normal + 3 corners (float32) + attribute
+    buf = np.empty(50 * mesh.n_triangles, np.uint8)
+    gk.stl_records(np.ascontiguousarray(v, dtype=np.float64), np.ascontiguousarray(mesh.triangles, dtype=np.int64),
+                   buf)
     with atomic_path(path, suffix=".stl") as tmp:
         with open(tmp, "wb") as fh:
             fh.write(b"gbscan mesh, camera frame, mm".ljust(80, b" "))
             fh.write(np.uint32(mesh.n_triangles).tobytes())
-            fh.write(rec.tobytes())
+            fh.write(memoryview(buf))
     return path
+
+
+def _n_digits(n: int) -> int:
+    return len(str(max(int(n), 1)))
+
+
+def _obj_rows(prefix: bytes, values: np.ndarray, decimals: int):
+    """OBJ lines ``prefix a b c`` with ``'%.{decimals}f'`` numbers, as bytes-like.
+
+    The same text as Python's ``%`` formatting (correct rounding, half to even, ``-0.0000`` for
+    small negatives): a compiled kernel rounds ``|x| * 10**decimals`` and writes the digits; the
+    few values whose float64 product lies within two ulps of a half are rounded by Python.
+    Values that are not finite or beyond 1e9 take Python's formatting for the whole block."""
+    from . import geomkernels as gk
+
+    x = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
+    if x.size and not (np.all(np.isfinite(x)) and np.max(np.abs(x)) < 1e9):
+        fmt = prefix.decode() + (f" %.{decimals}f" * 3) + "\n"
+        return ((fmt * (x.size // 3)) % tuple(x)).encode("ascii")
+    k = np.empty(x.size, np.int64)
+    amb = np.empty(x.size, np.bool_)
+    if gk.fixed_point_digits(x, decimals, k, amb):
+        for i in np.flatnonzero(amb):
+            k[i] = int(f"{abs(x[i]):.{decimals}f}".replace(".", ""))
+    buf = np.empty((x.size // 3) * (len(prefix) + 1 + 3 * (decimals + 13)), np.uint8)
+    nbytes = gk.format_rows(np.frombuffer(prefix, np.uint8), k, np.signbit(x), decimals, buf)
+    return memoryview(buf[:nbytes])
 
 
 def read_mesh(path) -> Mesh:

@@ -11,7 +11,7 @@ scan.to_open3d(); scan.mesh("grid")           # open3d PointCloud / TriangleMesh
 ```
 
 Pipeline per frame: :func:`gbscan.decode.decode` (continuous projector column per pixel) ->
-:func:`gbscan.triangulate.triangulate` (rays x light planes, exact cross-ratio interpolation) ->
+:class:`gbscan.triangulate.GridTriangulator` (rays x light planes, exact; vectorised) ->
 :func:`gbscan.clean.clean` (filters with per-pixel reasons) -> grid normals.  When the projector
 columns come from elsewhere (ground truth, another decoder), :meth:`Scanner.reconstruct` runs
 the same pipeline from them.
@@ -131,11 +131,9 @@ class Scan:
 
     def save_ply(self, path) -> Path:
         """Write the cloud as an organised binary PLY (see :mod:`gbscan.mesh`)."""
-        from .mesh import write_cloud_ply
+        from .mesh import write_grid_cloud_ply
 
-        H, W = self.shape
-        return write_cloud_ply(path, self.points, self.normals, confidence=self.point_confidence,
-                               pixel=self.pixel, grid_size=(W, H))
+        return write_grid_cloud_ply(path, self.xyz, self.normals_map, self.confidence, self.reason)
 
     def summary(self) -> str:
         """Human-readable lines: removals per step, points, coverage, timings."""
@@ -150,7 +148,8 @@ class Scan:
 
 class Scanner:
     """Scans frames with one calibration.  Construction precomputes the pixel rays (through the
-    camera model, distortion included) and the plane table; :meth:`scan` is then cheap.
+    camera model, distortion included) and the plane table (:attr:`triangulator`, a
+    :class:`gbscan.triangulate.GridTriangulator`); :meth:`scan` is then cheap.
 
     calibration : a :class:`gbscan.calibfile.Calibration` or the path of a calibration file.
     pattern : the projected pattern; default the calibration's (or ``PatternSpec()`` if the file
@@ -162,7 +161,7 @@ class Scanner:
 
     def __init__(self, calibration: Calibration | str | Path, *, pattern: PatternSpec | None = None,
                  decode_params=None, clean_params: CleanParams | None = None, min_angle_deg: float = 2.0):
-        from .triangulate import PlaneTable
+        from .triangulate import GridTriangulator, PlaneTable
 
         if isinstance(calibration, (str, Path)):
             calibration = load_calibration(calibration)
@@ -183,8 +182,18 @@ class Scanner:
             raise GBError("Scanner: clean_params must be a gbscan.clean.CleanParams")
         self.min_angle_deg = float(min_angle_deg)
         self.camera = calibration.camera
-        self.rays = self.camera.pixel_rays()  # (H, W, 3) float64 unit rays, distortion inverted
         self.planes = PlaneTable.from_calibration(calibration)
+        # every pixel's ray (distortion inverted) and the planes in the form the frame kernel uses
+        self.triangulator = GridTriangulator(self.camera, self.planes, min_angle_deg=self.min_angle_deg)
+        self._rays = None
+
+    @property
+    def rays(self) -> np.ndarray:
+        """(H, W, 3) float64 unit rays of the pixel centres (``Camera.pixel_rays()``; computed on
+        first use: scanning itself uses :attr:`triangulator`'s per-pixel rays)."""
+        if self._rays is None:
+            self._rays = self.camera.pixel_rays()
+        return self._rays
 
     @property
     def size(self) -> tuple[int, int]:
@@ -218,7 +227,6 @@ class Scanner:
             are counted as ``not_decoded``.
         """
         from . import kernels
-        from .triangulate import triangulate
 
         W, H = self.size
         column = np.asarray(column)
@@ -233,9 +241,7 @@ class Scanner:
             if conf.shape != (H, W):
                 raise GBError(f"confidence map is {conf.shape[::-1]} but the camera is {W}x{H}")
             conf = np.where(decoded, conf, np.float32(0))
-        xyz = np.empty((H, W, 3), np.float32)
-        triangulate(self.rays, np.where(decoded, column, np.nan), self.planes,
-                    min_angle_deg=self.min_angle_deg, out=xyz)
+        xyz = self.triangulator(np.where(decoded, column, np.float32(np.nan)))
         t1 = time.perf_counter()
         reason = (~decoded).view(np.uint8) * np.uint8(CODE["not_decoded"])  # 0 = in play
         counts = {"pixels": H * W, "not_decoded": int(np.count_nonzero(reason))}

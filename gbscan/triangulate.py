@@ -29,6 +29,21 @@ the depth is interpolated linearly.
 
 Rays meeting a plane at a grazing angle (``|n . r| < sin(min_angle_deg)``), negative depths
 and columns beyond the calibrated range give NaN, never huge values.
+
+Whole frames: :class:`GridTriangulator`
+---------------------------------------
+:func:`triangulate` is the reference (any rays, float64).  Scanning frames uses
+:class:`GridTriangulator`, built once per calibration: it keeps each pixel's ray as
+``(mx, my, 1)`` (undistorted normalised coordinates, two float64 arrays) and, when the planes
+form a pencil (every calibration ``gbcal`` writes: its planes come from the refined pinhole
+projector, :meth:`PlaneTable.pencil`), the plane of a column in closed form,
+``N(x) = a + (x - xc) b``, ``D(x) = ad + (x - xc) bd``.  A pixel is then ``z = D(x) / (N(x) . m)``,
+``p = z m``: no table lookup, so the kernel is branch-free and vectorised (float64 arithmetic,
+float32 points: equal to the reference rounded to float32).  The angle test of the reference is
+on the two calibrated planes enclosing the column; the vectorised kernel only counts pixels
+whose ray comes within that angle plus four plane spacings of the plane at ``x``, and a frame
+with any such pixel is redone by the general compiled kernel (the reference's algorithm on the
+same rays).  Planes that are not a pencil always take the general kernel.
 """
 from __future__ import annotations
 
@@ -97,6 +112,149 @@ class PlaneTable:
     @property
     def n_planes(self) -> int:
         return int(self.column.size)
+
+    def pencil(self, tol: float = 1e-10) -> "Pencil | None":
+        """The planes as one :class:`Pencil` ``(a + (x - xc) b) . p = ad + (x - xc) bd``, or None when
+        they are not one (within ``tol``: unit-normal components, and ``d`` relative to the
+        largest ``|d|``, at every calibrated plane).  Computed once per table."""
+        key = ("_pencil", float(tol))
+        cache = self.__dict__.setdefault("_cache", {})
+        if key not in cache:
+            cache[key] = _fit_pencil(self.column, self.normal, self.d, tol)
+        return cache[key]
+
+
+@dataclass(frozen=True, eq=False)
+class Pencil:
+    """Light planes of a pinhole projector: column ``x`` has the (unnormalised) plane
+    ``(a + (x - xc) b) . p = ad + (x - xc) bd`` (camera frame, mm).
+
+    a, b : (3,) float64; ad, bd : float (mm, mm/px); xc : column the expansion is about (px).
+    fit_error : largest deviation of a calibrated plane (unit normal components, and d in mm).
+    """
+
+    xc: float
+    a: np.ndarray
+    b: np.ndarray
+    ad: float
+    bd: float
+    fit_error: tuple[float, float]
+
+
+def _fit_pencil(column, normal, d, tol) -> Pencil | None:
+    """Fit a pencil to the planes (a rank-2 subspace of homogeneous planes, then the projective
+    map from columns onto it) and check it reproduces every plane; None if it does not."""
+    P = column.size
+    if P < 3:
+        return None
+    L = max(1.0, float(np.max(np.abs(d))))
+    q = np.concatenate([normal, (d / L)[:, None]], axis=1)  # (P, 4) homogeneous planes
+    _, sv, vt = np.linalg.svd(q, full_matrices=False)
+    if sv[2] > 1e-6 * sv[0]:
+        return None
+    e1, e2 = vt[0], vt[1]
+    alpha, beta = q @ e1, q @ e2
+    xc = 0.5 * (column[0] + column[-1])
+    xs = max(0.5 * (column[-1] - column[0]), 1e-12)
+    t = (column - xc) / xs
+    # (alpha : beta) = (a0 + a1 t : c0 + c1 t)  ->  alpha (c0 + c1 t) - beta (a0 + a1 t) = 0
+    M = np.stack([-beta, -beta * t, alpha, alpha * t], axis=1)
+    _, _, vt2 = np.linalg.svd(M, full_matrices=False)
+    a0, a1, c0, c1 = vt2[-1]
+    A = a0 * e1 + c0 * e2
+    B = (a1 * e1 + c1 * e2) / xs
+    N = A[:3] + (column - xc)[:, None] * B[:3]
+    D = L * (A[3] + (column - xc) * B[3])
+    norm = np.linalg.norm(N, axis=1)
+    if not np.all(norm > 0):
+        return None
+    sign = np.sign(np.einsum("ij,ij->i", N, normal))
+    err_n = float(np.max(np.abs(N * (sign / norm)[:, None] - normal)))
+    err_d = float(np.max(np.abs(D * sign / norm - d)))
+    if not (np.all(sign != 0) and err_n <= tol and err_d <= tol * L):
+        return None
+    return Pencil(float(xc), A[:3].copy(), B[:3].copy(), float(L * A[3]), float(L * B[3]), (err_n, err_d))
+
+
+class GridTriangulator:
+    """Triangulates whole camera frames of one calibration (see the module docstring).
+
+    camera : :class:`gbscan.camera.Camera`; planes : :class:`PlaneTable`.
+    min_angle_deg, max_extrapolate_px : as :func:`triangulate`.
+
+    Construction computes every pixel's ray (distortion inverted per pixel, as
+    :meth:`Camera.normalize <gbscan.camera.Camera.normalize>`): ``mx``, ``my`` (H * W,) float64.
+    Calling it with a column map (H, W) px (float32 or float64, NaN = none) returns the points
+    (H, W, 3) float32 mm, NaN where nothing was reconstructed, written into ``out`` if given.
+    """
+
+    def __init__(self, camera, planes: PlaneTable, *, min_angle_deg: float = 2.0,
+                 max_extrapolate_px: float | None = None):
+        from . import geomkernels as gk
+
+        self.camera = camera
+        self.planes = planes
+        self.shape = (camera.height, camera.width)
+        H, W = self.shape
+        self.mx = np.empty(H * W)
+        self.my = np.empty(H * W)
+        K = camera.K
+        gk.undistort_grid(W, H, K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1], camera.dist, self.mx, self.my)
+        self.min_angle_deg = float(min_angle_deg)
+        if max_extrapolate_px is None:
+            max_extrapolate_px = planes.spacing_px
+        self.max_extra_px = float(min(max_extrapolate_px, 2 * planes.spacing_px))
+        self.lo = float(planes.column[0] - self.max_extra_px)
+        self.hi = float(planes.column[-1] + self.max_extra_px)
+        self.sin2_min = float(np.sin(np.radians(self.min_angle_deg)) ** 2)
+        self.pencil = planes.pencil()
+        if self.pencil is not None:
+            # the plane at x is within one plane spacing of the enclosing calibrated planes (two
+            # more where extrapolating): angles to them differ by at most that dihedral angle
+            cosines = np.clip(np.einsum("ij,ij->i", planes.normal[1:], planes.normal[:-1]), -1.0, 1.0)
+            margin = 4.0 * float(np.max(np.arccos(np.abs(cosines))))
+            guard = np.radians(self.min_angle_deg) + margin + 1e-9
+            self.sin2_guard = float(np.sin(guard) ** 2) if guard < np.pi / 2 else np.inf  # inf: always general
+            a, b = self.pencil.a, self.pencil.b
+            self._pencil_args = (self.pencil.xc, a[0], a[1], a[2], self.pencil.ad, b[0], b[1], b[2], self.pencil.bd,
+                                 float(a @ a), float(a @ b), float(b @ b))
+        self._unit_rays = None  # (H * W, 3), only for two-plane tables
+        self.last_path = None  # "pencil", "general" or "linear": how the last frame went (tests, benches)
+
+    def __call__(self, column: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        from . import geomkernels as gk
+
+        column = np.asarray(column)
+        H, W = self.shape
+        if column.shape != (H, W):
+            raise GBError(f"column map is {column.shape[::-1]} but the camera is {W}x{H}")
+        if column.dtype not in (np.float32, np.float64):
+            column = column.astype(np.float64)
+        flat = np.ascontiguousarray(column).reshape(-1)
+        if out is None:
+            out = np.empty((H, W, 3), np.float32)
+        elif out.shape != (H, W, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
+            raise GBError(f"GridTriangulator: out must be a C-contiguous float32 array of shape {(H, W, 3)}")
+        o = out.reshape(-1)
+        if self.pencil is not None:
+            n_guard = gk.pencil_points(self.mx, self.my, flat, *self._pencil_args, self.lo, self.hi,
+                                       self.sin2_guard, o)
+            if n_guard == 0:
+                self.last_path = "pencil"
+                return out
+        pl = self.planes
+        if pl.n_planes < 3:  # two planes: the reference's linear depth interpolation
+            if self._unit_rays is None:
+                m = np.stack([self.mx, self.my, np.ones_like(self.mx)], axis=1)
+                self._unit_rays = m / np.linalg.norm(m, axis=1, keepdims=True)
+            triangulate(self._unit_rays, flat, pl, min_angle_deg=self.min_angle_deg,
+                        max_extrapolate_px=self.max_extra_px, out=o.reshape(-1, 3))
+            self.last_path = "linear"
+            return out
+        gk.cross_ratio_points(self.mx, self.my, flat, pl.column, pl.normal, pl.d, pl.lut, pl.lut0, self.sin2_min,
+                              self.lo, self.hi, o)
+        self.last_path = "general"
+        return out
 
 
 def triangulate(rays: np.ndarray, column: np.ndarray, planes: PlaneTable, *,

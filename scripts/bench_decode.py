@@ -144,11 +144,24 @@ def ftp_peer(image_rgb: np.ndarray):
     return run
 
 
+def _widths(text: str) -> list[int]:
+    import argparse
+
+    try:
+        widths = [int(x.split("x")[0]) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected widths like 640,1280 (or 640x480), got {text!r}") from None
+    if not widths or min(widths) < 64:
+        raise argparse.ArgumentTypeError(f"widths must be >= 64 px, got {text!r}")
+    return widths
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=15)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--sizes", default="640,1280")
+    ap.add_argument("--sizes", default="640,1280", type=_widths,
+                    help="camera widths, comma-separated (640 -> 640x480, 1280 -> 1280x1024)")
     ap.add_argument("--scene", default="plane", choices=("plane", "head", "multi_object"))
     ap.add_argument("--preset", default="typical", choices=("clean", "typical", "hard"))
     ap.add_argument("--no-peers", action="store_true", help="decoder figures only (skip FTP and Gray code)")
@@ -164,7 +177,7 @@ def main(argv=None) -> int:
     numba.set_num_threads(max(1, min(args.threads, numba.config.NUMBA_NUM_THREADS)))
     spec = PatternSpec()
     print(f"# decoder benchmark, {args.scene} ({args.preset}), {args.threads} thread(s), median of {args.runs} runs (ms)")
-    for w in (int(x) for x in args.sizes.split(",")):
+    for w in args.sizes:
         r = frames(w, args.scene, args.preset)
         img = r.image
         H, W = img.shape[:2]

@@ -161,3 +161,123 @@ def test_render_shows_the_mesh_where_it_projects(rig, sphere_scene):
     assert np.pi * radius ** 2 * 0.97 < (img > 0).sum() < np.pi * radius ** 2 * 1.01
     empty = Mesh(np.zeros((0, 3)), np.zeros((0, 3), int))
     assert not render_mesh(empty.vertices, empty.triangles, rig.camera.K, (64, 48)).any()
+
+
+# -- compiled mesh building and writers: the same arrays and bytes as plain numpy ----------------
+def _grid_mesh_numpy(xyz, valid=None, max_jump=0.01, normals=None):
+    """The numpy formulation of grid_mesh's rules (the reference the compiled pass must equal)."""
+    H, W = xyz.shape[:2]
+    with np.errstate(invalid="ignore"):
+        z = ((xyz[..., 0] + xyz[..., 1] + xyz[..., 2]) * 0 + xyz[..., 2]).astype(np.float32)
+    if valid is not None:
+        z[~valid] = np.nan
+    a, b, c, d = z[:-1, :-1], z[1:, :-1], z[:-1, 1:], z[1:, 1:]
+    with np.errstate(invalid="ignore"):
+        lo = np.minimum(np.minimum(a, b), np.minimum(c, d))
+        quad = np.maximum(np.maximum(a, b), np.maximum(c, d)) - lo <= np.float32(max_jump) * lo
+    used = np.zeros((H, W), bool)
+    for dv, du in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        used[dv:H - 1 + dv, du:W - 1 + du] |= quad
+    rows, cols = np.nonzero(used)
+    index = np.full((H, W), -1, np.int64)
+    index[rows, cols] = np.arange(rows.size)
+    qv, qu = np.nonzero(quad)
+    ia, ib, ic, id_ = index[qv, qu], index[qv + 1, qu], index[qv, qu + 1], index[qv + 1, qu + 1]
+    tris = np.stack([np.stack([ia, ib, ic], 1), np.stack([ic, ib, id_], 1)], 1).reshape(-1, 3)
+    verts = xyz[rows, cols].astype(np.float64)
+    n = _vertex_normals_numpy(verts, tris)
+    if normals is not None:  # the grid's normals where finite and non-zero
+        given = normals[rows, cols].astype(np.float64)
+        use = np.isfinite(given).all(1) & (np.abs(given).sum(1) > 0)
+        n[use] = given[use]
+    return verts, tris, np.stack([rows, cols], 1).astype(np.int32), n
+
+
+def _vertex_normals_numpy(v, t):
+    e, f = v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]
+    fn = (e[:, 1] * f[:, 2] - e[:, 2] * f[:, 1], e[:, 2] * f[:, 0] - e[:, 0] * f[:, 2],
+          e[:, 0] * f[:, 1] - e[:, 1] * f[:, 0])
+    n = np.stack([sum(np.bincount(t[:, k], weights=fn[c], minlength=len(v)) for k in range(3)) for c in range(3)], 1)
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_grid_mesh_equals_the_numpy_formulation(sphere_scene, dtype):
+    p, oid = sphere_scene
+    xyz = p.astype(dtype)
+    xyz[100:104, 300:330, 0] = np.inf  # not finite in one coordinate: no vertex
+    rng = np.random.default_rng(0)
+    valid = np.isfinite(p[..., 2]) & (rng.random(p.shape[:2]) > 0.02)
+    nrm = np.where(np.isfinite(xyz), -xyz / np.linalg.norm(p, axis=-1, keepdims=True), np.nan).astype(np.float32)
+    holed = nrm.copy()
+    holed[240, 320] = np.nan  # one vertex without a normal: area-weighted there only
+    holed[250, 300] = 0.0
+    for kw in (dict(), dict(valid=valid), dict(valid=valid, normals=nrm), dict(normals=holed), dict(max_jump=0.2)):
+        m = grid_mesh(xyz, **kw)
+        ref = _grid_mesh_numpy(xyz, **kw)
+        for got, want in zip((m.vertices, m.triangles, m.pixel, m.normals()), ref):
+            assert got.dtype == want.dtype and np.array_equal(got, want), kw
+    assert np.array_equal(vertex_normals(m.vertices, m.triangles), _vertex_normals_numpy(m.vertices, m.triangles))
+
+
+def _numpy_mesh_bytes(m, suffix):
+    """The files as plain numpy/Python formatting writes them."""
+    v, n, t = m.vertices, np.nan_to_num(m.normals()), m.triangles
+    if suffix == "obj":
+        text = "# gbscan mesh, camera frame (x right, y down, z forward), mm\n"
+        text += ("v %.4f %.4f %.4f\n" * len(v)) % tuple(v.ravel())
+        text += ("vn %.5f %.5f %.5f\n" * len(n)) % tuple(n.ravel())
+        text += ("f %d//%d %d//%d %d//%d\n" * len(t)) % tuple(np.repeat(t + 1, 2, axis=1).ravel())
+        return text.encode("ascii")
+    if suffix == "stl":
+        rec = np.zeros(len(t), np.dtype([("n", "<f4", (3,)), ("v", "<f4", (3, 3)), ("a", "<u2")]))
+        rec["n"], rec["v"] = triangle_normals(v, t), v[t]
+        return b"gbscan mesh, camera frame, mm".ljust(80, b" ") + np.uint32(len(t)).tobytes() + rec.tobytes()
+    rec = np.empty(len(v), np.dtype([(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz")]))
+    for k, col in zip(rec.dtype.names, np.concatenate([v, n], 1).T):
+        rec[k] = col
+    frec = np.empty(len(t), np.dtype([("n", "u1"), ("v", "<i4", (3,))]))
+    frec["n"], frec["v"] = 3, t
+    head = ("ply\nformat binary_little_endian 1.0\ncomment gbscan mesh, camera frame, mm\n"
+            f"element vertex {len(v)}\n" + "".join(f"property float {k}\n" for k in rec.dtype.names) +
+            f"element face {len(t)}\nproperty list uchar int vertex_indices\nend_header\n")
+    return head.encode("ascii") + rec.tobytes() + frec.tobytes()
+
+
+def test_mesh_files_are_the_bytes_numpy_formatting_writes(tmp_path, sphere_scene):
+    p, _ = sphere_scene
+    m = grid_mesh(p[::3, ::3], max_jump=0.05)
+    # awkward numbers for the fixed-point text: exact ties (half to even), values just off a
+    # tie, tiny negatives ('-0.0000'), negative zero, long integer parts
+    odd = np.array([1.03125, 2.00005, -1.03125, -1e-6, -0.0, 0.0, 123456.78125, 0.00015, 0.00025, 9.99995,
+                    -9.999949999, 12345678.5, 0.5, 1.5, 2.5, 4.4999999999])
+    m.vertices[:len(odd) // 3] = odd[:len(odd) // 3 * 3].reshape(-1, 3)
+    m.vertex_normals[:5] = [[-0.0, 1e-7, -1e-7], [0.000005, 0.000015, -0.000025], [1, 0, 0], [0, 0, 0], [0.1, 0.2, 0.3]]
+    for suffix in ("obj", "ply", "stl"):
+        path = write_mesh(tmp_path / f"m.{suffix}", m)
+        assert path.read_bytes() == _numpy_mesh_bytes(m, suffix), suffix
+    m.vertices[0, 0] = 3e12  # beyond the kernel's range: Python formats that block
+    assert write_mesh(tmp_path / "big.obj", m).read_bytes() == _numpy_mesh_bytes(m, "obj")
+
+
+def test_scan_cloud_is_write_cloud_ply(tmp_path, sphere_scene):
+    """The compiled organised-cloud writer writes the bytes of write_cloud_ply with every field."""
+    from gbscan.mesh import write_grid_cloud_ply
+
+    p, _ = sphere_scene
+    H, W = p.shape[:2]
+    rng = np.random.default_rng(2)
+    xyz = p.astype(np.float32)
+    reason = np.where(np.isfinite(p[..., 2]) & (rng.random((H, W)) > 0.1), 0, 3).astype(np.uint8)
+    nrm = rng.normal(size=(H, W, 3)).astype(np.float32)
+    nrm[5, 5] = [np.nan, np.inf, -np.inf]
+    reason[5, 5] = 0
+    conf = rng.random((H, W)).astype(np.float32)
+    ok = reason == 0
+    write_grid_cloud_ply(tmp_path / "a.ply", xyz, nrm, conf, reason)
+    write_cloud_ply(tmp_path / "b.ply", xyz[ok], nrm[ok], confidence=conf[ok], pixel=np.argwhere(ok).astype(np.int32),
+                    grid_size=(W, H))
+    assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+    c = read_cloud_ply(tmp_path / "a.ply")
+    assert c.organised and c.grid_size == (W, H) and len(c.points) == ok.sum()

@@ -198,3 +198,123 @@ def _distorted(cam):
     q = cam.pixel_grid()
     y = (q[..., 1] - cam.K[1, 2]) / cam.K[1, 1]
     return np.stack([(q[..., 0] - cam.K[0, 2] - cam.K[0, 1] * y) / cam.K[0, 0], y], axis=-1)
+
+
+# -- whole frames: GridTriangulator (vectorised pencil kernel, general compiled kernel) -----------
+def _random_rig(rng, width=160, height=120):
+    """A random camera (distorted) and pinhole projector looking at a point 400-1500 mm away."""
+    from gbscan.camera import Camera
+    from gbscan.rig import Projector, Rig, look_at
+
+    f = 200 * rng.uniform(0.8, 1.2)
+    cam = Camera(width, height, [[f, 0, (width - 1) / 2 + rng.normal(0, 3)], [0, f * rng.uniform(0.95, 1.05),
+                                                                              (height - 1) / 2], [0, 0, 1]],
+                 [rng.normal(0, 0.1), rng.normal(0, 0.05), rng.normal(0, 1e-3), rng.normal(0, 1e-3), 0.0])
+    dist = rng.uniform(400, 1500)
+    eye = np.array([rng.uniform(100, 400) * rng.choice([-1, 1]), rng.normal(0, 20), rng.normal(0, 20)])
+    proj = Projector(1024, 768, [[rng.uniform(1200, 2500), 0, 511.5], [0, 1800, 383.5], [0, 0, 1]])
+    return Rig(cam, proj, look_at(eye, np.array([0.0, 0.0, dist])), eye), dist
+
+
+def _f32_close(out, ref):
+    """Points equal to the float64 reference rounded to float32: within one float32 rounding
+    (2**-24 relative; 3e-5 mm at 650 mm, 1.2e-4 mm at 2 m), and NaN exactly where it is NaN."""
+    fin = np.isfinite(ref[..., 2])
+    assert np.array_equal(np.isfinite(out).all(-1), fin) and np.array_equal(np.isnan(out).any(-1), ~fin)
+    err = np.abs(out[fin].astype(np.float64) - ref[fin])
+    assert np.all(err <= 2.0 ** -24 * np.abs(ref[fin]) + 1e-9), err.max()
+    return fin
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_grid_triangulator_matches_the_float64_reference(seed):
+    """Random rigs and surfaces: the pencil kernel on consistent columns, the general kernel on
+    columns drawn at random (some rays graze their planes there), both the float64 reference
+    rounded to float32."""
+    from gbscan.triangulate import GridTriangulator
+
+    rng = np.random.default_rng(seed)
+    rig, dist = _random_rig(rng)
+    table = PlaneTable.from_calibration(calibration_from_rig(rig, PatternSpec()))
+    g = GridTriangulator(rig.camera, table)
+    assert g.pencil is not None
+    rays = rig.camera.pixel_rays()
+    # a random depth per pixel, and the true projector column of that point
+    depth = rng.uniform(0.7, 1.3, rays.shape[:2]) * dist
+    col = rig.project_to_projector(rays / rays[..., 2:] * depth[..., None])[..., 0].astype(np.float32)
+    col[rng.random(col.shape) < 0.1] = np.nan
+    out = g(col)
+    assert g.last_path == "pencil"
+    fin = _f32_close(out, triangulate(rays, col, table))
+    assert fin.mean() > 0.5
+    np.testing.assert_allclose(out[fin, 2], depth[fin], rtol=1e-5)  # and the surface comes back
+    wild = rng.uniform(table.column[0] - 12, table.column[-1] + 12, col.shape)  # float64 columns
+    wild[rng.random(col.shape) < 0.1] = np.nan
+    buf = np.full(out.shape, 7.0, np.float32)
+    assert g(wild, out=buf) is buf
+    assert g.last_path == "general"
+    _f32_close(buf, triangulate(rays, wild, table))
+
+
+def test_grid_triangulator_on_planes_that_are_not_a_pencil(rig, calib):
+    """Planes fitted one by one (perturbed): no pencil, the general kernel, still the reference."""
+    from gbscan.triangulate import GridTriangulator
+
+    rng = np.random.default_rng(5)
+    n = calib.plane_normal + rng.normal(0, 1e-4, calib.plane_normal.shape)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    table = PlaneTable.from_arrays(calib.plane_column, n, calib.plane_d + rng.normal(0, 0.01, calib.plane_d.shape))
+    assert table.pencil() is None
+    assert PlaneTable.from_calibration(calib).pencil().fit_error[0] < 1e-12
+    _, col, _ = truth(rig, spheres=[((30.0, -20.0, 600.0), 90.0)], planes=[tilted_plane(700.0)])
+    g = GridTriangulator(rig.camera, table)
+    out = g(col)
+    assert g.last_path == "general"
+    _f32_close(out, triangulate(pixel_rays(rig.camera), col, table))
+    with pytest.raises(GBError, match="column map"):
+        g(col[:, :-1])
+    with pytest.raises(GBError, match="out must be"):
+        g(col, out=np.empty(out.shape, np.float64))
+
+
+def test_grid_triangulator_with_two_planes_interpolates_linearly_as_the_reference(rig, calib):
+    from gbscan.triangulate import GridTriangulator
+
+    two = PlaneTable.from_arrays(calib.plane_column[60:62], calib.plane_normal[60:62], calib.plane_d[60:62])
+    _, col, _ = truth(rig, planes=[tilted_plane(650.0)])
+    g = GridTriangulator(rig.camera, two)
+    out = g(col)
+    assert g.last_path == "linear"
+    fin = _f32_close(out, triangulate(pixel_rays(rig.camera), col, two))
+    assert fin.sum() > 100
+
+
+def test_pencil_fit_needs_three_planes_and_rejects_small_departures(calib):
+    two = PlaneTable.from_arrays(calib.plane_column[:2], calib.plane_normal[:2], calib.plane_d[:2])
+    assert two.pencil() is None
+    d = calib.plane_d.copy()
+    d[40] += 1e-6  # mm: a plane a micrometre off the pencil is not the pencil's
+    assert PlaneTable.from_arrays(calib.plane_column, calib.plane_normal, d).pencil() is None
+    p = PlaneTable.from_calibration(calib).pencil()
+    x = calib.plane_column[[3, 50, 90]]
+    N = p.a + (x - p.xc)[:, None] * p.b
+    scale = np.linalg.norm(N, axis=1)
+    np.testing.assert_allclose(N / scale[:, None], calib.plane_normal[[3, 50, 90]], atol=1e-12)
+    np.testing.assert_allclose((p.ad + (x - p.xc) * p.bd) / scale, calib.plane_d[[3, 50, 90]], atol=1e-9)
+
+
+@pytest.mark.parametrize("dist", [(-0.12, 0.09, 0.0005, -0.0003, 0.0), (0.0,) * 5,
+                                  (-0.35, 0.15, 0.002, -0.001, -0.03), (-0.6, 0.9, 0.01, -0.01, -1.5)])
+def test_per_pixel_rays_are_the_camera_models(rig, dist):
+    """GridTriangulator's rays (mx, my, 1) are Camera.normalize of the pixel centres."""
+    from gbscan import geomkernels as gk
+    from gbscan.camera import Camera
+
+    cam = Camera(200, 150, rig.camera.K * [[0.3125], [0.3125], [1]], dist)
+    mx, my = np.empty(200 * 150), np.empty(200 * 150)
+    n_slow = gk.undistort_grid(200, 150, cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2], cam.K[0, 1],
+                               cam.dist, mx, my)
+    ref = cam.normalize(cam.pixel_grid()).reshape(-1, 2)
+    np.testing.assert_allclose(mx, ref[:, 0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(my, ref[:, 1], rtol=0, atol=1e-12)
+    assert (n_slow > 0) == (dist[0] == -0.6)  # only the extreme lens takes the redo path (per-pixel Newton)

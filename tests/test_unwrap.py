@@ -258,3 +258,318 @@ def test_component_pixels_over_spans_equals_the_image_pass():
         np.testing.assert_array_equal(a[0], b[0])
         np.testing.assert_array_equal(a[1], b[1])
         assert a[2] == b[2] and (frac == 0 or a[2] > 0)
+
+
+# -- compiled kernels against their reference forms (performance work keeps results bit-identical)
+def _slope_jumps_reference(vc, vk, vl, vv, comp, col_rel, col_abs, region, comps, offsets, rows, half_px, tol, z_min):
+    """The numpy form ``unwrap._slope_jumps`` had before its compiled kernels (kept as the reference)."""
+    from gbscan import kernels
+
+    out = np.zeros(comps.size, bool)
+    H, W = col_rel.shape
+    h = int(half_px)
+    sel = vl >= 0
+    if not sel.any():
+        return out
+    c, kk, u, v = vc[sel], vk[sel], vl[sel].astype(np.int64), vv[sel].astype(np.int64)
+    up = (v >= 2) & np.isfinite(col_abs[np.clip(v - 1, 0, H - 1), u]) & np.isfinite(col_abs[np.clip(v - 2, 0, H - 1), u])
+    d = np.where(up, -1, 1)
+    ca = np.ascontiguousarray(col_abs, dtype=np.float32)
+    cr = np.ascontiguousarray(col_rel, dtype=np.float32)
+    reg = np.ascontiguousarray(region, dtype=np.int32)
+    src_reg = reg[np.clip(v + d, 0, H - 1), u]
+
+    def first_slopes(img, labels, rows_of, want, r0, r1):
+        g = np.full(c.size, np.nan)
+        for r in range(r0, r1):
+            todo = np.isnan(g)
+            if todo.any():
+                g[todo] = kernels.window_slopes(img, labels, want[todo], rows_of(r)[todo], u[todo], h, h)
+        return g
+
+    g_c = first_slopes(cr, comp, lambda r: v - r * d, c.astype(np.int32), rows, 2 * rows)
+    lim = np.log1p(tol)
+    for s0, sides, lim_s in ((rows, (0,), lim), (3 * rows, (-1, 1), np.log1p(2 * tol))):
+        g_s = first_slopes(ca, reg, lambda r: v + r * d, src_reg, s0, s0 + rows)
+        fin = np.isfinite(g_c) & np.isfinite(g_s) & (g_c > 0) & (g_s > 0)
+        lr = np.full(c.size, np.nan)
+        lr[fin] = np.log(g_c[fin] / g_s[fin])
+        for i, (cc, ko) in enumerate(zip(comps.tolist(), offsets.tolist())):
+            for side in sides:
+                m = (c == cc) & (kk == ko) & fin & ((d == side) | (side == 0))
+                if m.sum() >= uw._SLOPE_MIN_VOTES:
+                    sl = lr[m]
+                    med = float(np.median(sl))
+                    spread = max(1.4826 * float(np.median(np.abs(sl - med))), uw._SLOPE_NOISE_FLOOR) / np.sqrt(sl.size)
+                    out[i] |= abs(med) > lim_s and abs(med) > z_min * spread
+    return out
+
+
+_FRAMES: dict = {}
+
+
+def _sim_frame(name: str):
+    """(image, StripeMap) of a small set of simulated frames (cached per test session)."""
+    from gbscan import sim
+    from gbscan.decode import decode
+    from gbscan.pattern import render_pattern
+
+    if name not in _FRAMES:
+        import dataclasses
+
+        scene, preset, seed = {"multi_move5": (lambda: sim.scenes.multi_object(675.0), "typical", 5),
+                               "hard_plane": (lambda: sim.scenes.plane(650.0, (10.0, 20.0)), "hard", 2)}[name]
+        cond = dataclasses.replace(sim.preset(preset), supersample=1)
+        img = sim.render(sim.paper_rig(), scene(), render_pattern(PatternSpec()), cond, seed=seed).image
+        _FRAMES[name] = (img, decode(img, PatternSpec()))
+    return _FRAMES[name]
+
+
+@pytest.mark.parametrize("name", ["multi_move5", "hard_plane"])
+def test_slope_jumps_kernel_equals_the_numpy_reference(name, monkeypatch):
+    """unwrap._slope_jumps (kernels.slope_samples + slope_verdicts) gives the old numpy form's
+    verdicts on the votes of simulated frames: the components the decoder asks about, every
+    voted-for (component, offset) pair, and tolerances from always to never refusing."""
+    from gbscan.decode import decode
+
+    img, _ = _sim_frame(name)
+    calls = []
+    real = uw._slope_jumps
+
+    def spy(*args):
+        calls.append(args)
+        return real(*args)
+
+    monkeypatch.setattr(uw, "_slope_jumps", spy)
+    decode(img, PatternSpec())
+    assert calls, "the frame must exercise the slope test"
+    n_true = n_false = 0
+    for args in calls:
+        vc, vk, vl, vv, comp, cr, ca, reg, comps, offs, rows, half, tol, z = args
+        np.testing.assert_array_equal(real(*args), _slope_jumps_reference(*args))
+        pairs = np.unique(np.c_[vc.astype(np.int64), vk], axis=0)  # every voted (component, offset)
+        for tol2, z2, rows2 in ((tol, z, rows), (0.0, 0.0, rows), (0.01, 3.0, 2), (1.0, z, rows)):
+            a = real(vc, vk, vl, vv, comp, cr, ca, reg, pairs[:, 0], pairs[:, 1], rows2, half, tol2, z2)
+            b = _slope_jumps_reference(vc, vk, vl, vv, comp, cr, ca, reg, pairs[:, 0], pairs[:, 1], rows2, half,
+                                       tol2, z2)
+            np.testing.assert_array_equal(a, b)
+            n_true += int(a.sum())
+            n_false += int((~a).sum())
+    assert n_true > 0 and n_false > 0  # both verdicts were compared
+
+
+def _channels(lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Locally normalised green and blue of an ideal frame: each stripe lights its own channel(s)."""
+    gn = ((lab == G) | (lab == C)).astype(np.float32)
+    bn = ((lab == B) | (lab == C)).astype(np.float32)
+    return gn, bn
+
+
+@pytest.mark.parametrize("other_channel, rejected", [(0.05, True), (0.12, True), (0.2, False), (0.45, False)])
+def test_marker_conflicts_a_clean_disagreement_is_decisive_a_missed_marker_is_not(other_channel, rejected):
+    """A green/blue run where the region expects a marker: a marker the classifier missed still
+    lights the other channel (skin, rims: min(gn, bn) >= 0.204 on the sweep), a stripe of another
+    surface welded in does not.  Only the clean one rejects its stretch on its own (the row only,
+    from the agreeing marker before it to the one after it)."""
+    spec = PatternSpec()
+    lab = stripe_image(spec, 0, 45, rows=40)
+    m = slice(16 * 3, 17 * 3)                      # marker stripe 16 (neighbours 15 and 17 blue)
+    lab[20, m] = G
+    gn, bn = _channels(lab)
+    bn[20, m] = other_channel
+    un = uw.unwrap(lab)
+    idx = uw.index_regions(lab, un.relative, un.region, un.region_px.size, spec)
+    assert idx.indexed.all()
+    bad = uw.spans_mask(uw.marker_conflicts(lab, un, idx, spec, gn=gn, bn=bn), lab.shape)
+    assert not np.delete(bad, 20, axis=0).any()
+    if rejected:
+        assert bad[20, 11 * 3:21 * 3].all() and not bad[20, :11 * 3].any() and not bad[20, 21 * 3:].any()
+    else:
+        assert not bad.any()
+    # without the channels, or with the rule off, one disagreement is never enough
+    assert uw.marker_conflicts(lab, un, idx, spec).shape == (0, 3)
+    off = uw.UnwrapParams(conflict_clean_level=0.0)
+    assert uw.marker_conflicts(lab, un, idx, spec, off, gn, bn).shape == (0, 3)
+
+
+def test_marker_conflicts_clean_kernel_equals_the_old_one_without_clean_runs():
+    """On the welded image of the two-event test the clean kernel finds the same spans (its
+    disagreements are cyan-less stripes too, but two of them already reject the stretch)."""
+    spec = PatternSpec()
+    lab = welded_image(spec)
+    gn, bn = _channels(lab)
+    un = uw.unwrap(lab)
+    idx = uw.index_regions(lab, un.relative, un.region, un.region_px.size, spec)
+    old = uw.spans_mask(uw.marker_conflicts(lab, un, idx, spec), lab.shape)
+    assert old.any()
+    for g, b in ((gn, bn), (np.full_like(gn, 0.5), np.full_like(bn, 0.5))):
+        np.testing.assert_array_equal(uw.spans_mask(uw.marker_conflicts(lab, un, idx, spec, gn=g, bn=b), lab.shape),
+                                      old)
+
+
+def test_conflict_clean_level_is_validated():
+    for bad in (-0.1, 1.0):
+        with pytest.raises(GBError, match="conflict_clean_level"):
+            uw.UnwrapParams(conflict_clean_level=bad)
+
+
+def _merge_loops_reference(rs, re, rl, nr, spike_px, max_gap_px):
+    """The spike and gap cleaning of ``kernels.row_segments`` as it was: merging by shifting the
+    rest of the row (quadratic), in Python."""
+    rs, re, rl = list(rs[:nr]), list(re[:nr]), list(rl[:nr])
+
+    def merge(k):
+        re[k - 1] = re[k + 1]
+        del rs[k:k + 2], re[k:k + 2], rl[k:k + 2]
+
+    if spike_px > 0 and len(rs) >= 3:
+        k = 1
+        while k < len(rs) - 1:
+            if (rl[k] != N and rl[k - 1] != N and rl[k - 1] == rl[k + 1] and re[k] - rs[k] + 1 <= spike_px
+                    and re[k - 1] + 1 == rs[k] and re[k] + 1 == rs[k + 1]):
+                merge(k)
+            else:
+                k += 1
+    if max_gap_px > 0 and len(rs) >= 3:
+        k = 1
+        while k < len(rs) - 1:
+            if rl[k] == N and re[k] - rs[k] + 1 <= max_gap_px and rl[k - 1] != N and rl[k - 1] == rl[k + 1]:
+                merge(k)
+            else:
+                k += 1
+    return rs, re, rl
+
+
+def test_one_pass_run_cleaning_equals_the_merge_loops():
+    """kernels._merge_runs_pass (spikes, then gaps; one pass each) leaves the runs the old merge
+    loops left, on noisy rows full of spikes, gaps and spike-gap-spike chains."""
+    from gbscan import kernels
+
+    rng = np.random.default_rng(0)
+    n_merged = 0
+    for trial in range(400):
+        W = int(rng.integers(1, 60))
+        # stripes of 1-4 px with NONE gaps and wrong-colour spikes sprinkled in
+        row = np.repeat(rng.choice([G, B, C, N], size=W, p=[0.35, 0.35, 0.1, 0.2]), rng.integers(1, 4, W))[:W]
+        row = row.astype(np.uint8)
+        starts = np.flatnonzero(np.r_[True, row[1:] != row[:-1]])
+        nr = starts.size
+        rs = np.zeros(W, np.int32)
+        re = np.zeros(W, np.int32)
+        rl = np.zeros(W, np.uint8)
+        rs[:nr], re[:nr], rl[:nr] = starts, np.r_[starts[1:] - 1, W - 1], row[starts]
+        for spike_px, gap_px in ((1, 1), (2, 1), (0, 2), (3, 0)):
+            want = _merge_loops_reference(rs, re, rl, nr, spike_px, gap_px)
+            a, b, c = rs.copy(), re.copy(), rl.copy()
+            m = nr
+            if spike_px > 0:
+                m = kernels._merge_runs_pass(a, b, c, m, False, spike_px)
+            if gap_px > 0:
+                m = kernels._merge_runs_pass(a, b, c, m, True, gap_px)
+            assert (a[:m].tolist(), b[:m].tolist(), c[:m].tolist()) == want, (trial, row.tolist(), spike_px, gap_px)
+            n_merged += nr - m
+    assert n_merged > 1000  # the rows did exercise the merging
+
+
+def test_vertical_votes_without_sort_equals_the_sorted_form():
+    """kernels.vertical_votes (pairs counted as they pass along the rows) against the sort of all
+    keys (kernels._vertical_votes_sorted) on a simulated hard frame, before and after cuts, and on
+    a shuffled numbering of the segments (the fast form must then fall back to the sort)."""
+    from gbscan import kernels
+
+    _, sm = _sim_frame("hard_plane")
+    segs = uw.unroll_rows(sm.labels)
+    segs.j_x = (0.5 * (segs.j_ua + segs.j_ub) + np.random.default_rng(1).normal(0, 0.4, segs.j_ua.size)).astype(
+        np.float32)
+    pieces = uw.cut_depth_edges(segs, 1.2)
+    assert pieces.n > segs.n
+    for s in (segs, pieces):
+        a = kernels.vertical_votes(sm.labels, s.seg, s.rel, s.n)
+        b = kernels._vertical_votes_sorted(sm.labels, s.seg, s.rel, s.n)
+        assert len(a) == len(b) == 6 and a[0].size > 1000
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+            assert x.dtype == y.dtype
+    perm = np.random.default_rng(2).permutation(segs.n).astype(np.int32)
+    shuffled = np.where(segs.seg >= 0, perm[np.maximum(segs.seg, 0)], -1).astype(np.int32)
+    a = kernels.vertical_votes(sm.labels, shuffled, segs.rel, segs.n)
+    b = kernels._vertical_votes_sorted(sm.labels, shuffled, segs.rel, segs.n)
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_check_vertical_equals_its_array_form():
+    """kernels.check_vertical (branch-free rows) against the same rule in whole-array numpy, on a
+    simulated frame with a tenth of the relative indices disturbed."""
+    from gbscan import kernels
+
+    _, sm = _sim_frame("multi_move5")
+    rng = np.random.default_rng(3)
+    rel = np.where(rng.random(sm.relative.shape) < 0.1, sm.relative + 2, sm.relative).astype(np.int32)
+    lab, reg = sm.labels, sm.region.astype(np.int32)
+    pair = ((lab[1:] != 0) & (reg[1:] >= 0) & (lab[:-1] == lab[1:]) & (reg[:-1] == reg[1:])
+            & (rel[1:] != rel[:-1]))
+    want = np.zeros(lab.shape, bool)
+    want[1:] |= pair
+    want[:-1] |= pair
+    got = kernels.check_vertical(lab, rel, reg)
+    assert want.sum() > 1000
+    np.testing.assert_array_equal(got, want)
+
+
+def _interpolate_columns_reference(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j_x, j_bnd, stripe_px,
+                                   extrapolate):
+    """``kernels.interpolate_columns`` as it was (the slope per pixel), in Python."""
+    col = np.full((H, W), np.nan, np.float32)
+    for s in np.flatnonzero(seg_ok):
+        xs, cs = [], []
+        for j in range(seg_j0[s], seg_j1[s]):
+            x = float(j_x[j])
+            if np.isnan(x) or (xs and x <= xs[-1] + 0.05):
+                continue
+            xs.append(x)
+            cs.append(float(j_bnd[j]) * stripe_px - 0.5)
+        n = len(xs)
+        if n < 2:
+            continue
+        k = 0
+        for u in range(seg_u0[s], seg_u1[s] + 1):
+            while k < n - 2 and u >= xs[k + 1]:
+                k += 1
+            x0, x1 = xs[k], xs[k + 1]
+            slope = (cs[k + 1] - cs[k]) / (x1 - x0)
+            if (u < x0 and x0 - u > extrapolate * (x1 - x0)) or (u > x1 and u - x1 > extrapolate * (x1 - x0)):
+                continue
+            col[seg_row[s], u] = cs[k] + (u - x0) * slope
+    return col
+
+
+def test_interpolate_columns_equals_the_per_pixel_form():
+    """kernels.interpolate_columns (the slope once per interval) against the per-pixel form, on a
+    simulated frame's segments with jittered, missing and out-of-order boundaries."""
+    from gbscan import kernels
+
+    _, sm = _sim_frame("multi_move5")
+    segs = uw.unroll_rows(sm.labels)
+    rng = np.random.default_rng(4)
+    jx = 0.5 * (segs.j_ua + segs.j_ub) + rng.normal(0, 0.6, segs.j_ua.size)
+    jx[rng.random(jx.size) < 0.05] = np.nan
+    jb = segs.j_rel.astype(np.float64) + 2 * rng.integers(-3, 4, jx.size)
+    ok = (rng.random(segs.n) < 0.3).astype(np.uint8)
+    H, W = sm.labels.shape
+    args = (H, W, segs.row, segs.u0, segs.u1, segs.j0, segs.j1, ok, jx, jb, 8.0, 0.5)
+    got = kernels.interpolate_columns(*args)
+    want = _interpolate_columns_reference(*args)
+    assert np.isfinite(want).sum() > 10000
+    np.testing.assert_array_equal(got, want)
+
+
+def test_unroll_rows_holds_a_junction_at_every_pixel():
+    """1-px alternating stripes without spike removal: W - 1 junctions in every row (more than the
+    kernel's scratch once held: it must not write past it)."""
+    lab = np.tile(np.array([G, B], np.uint8), (30, 40))
+    s = uw.unroll_rows(lab, max_gap_px=1, spike_px=0)
+    assert s.n == 30 and s.j_seg.size == 30 * 79
+    np.testing.assert_array_equal(s.rel, np.broadcast_to(np.arange(80), (30, 80)))
+    e = uw.relate_rows(lab, s)
+    assert e.s.size == 29 and (e.offset == 0).all() and (e.n_agree == 80).all()
