@@ -520,12 +520,19 @@ def rim_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confiden
     near = ws.near if ws is not None and ws.shape == mask.shape else np.empty(mask.shape, np.uint8)
     assert (DARK, SATURATED, LOW_CONTRAST) == (1, 2, 3)  # the kernel's [b_lo, b_hi] range
     n = int(kernels.rim_guard_rows(mask, column, stripe, confidence, UNINDEXED, ISOLATED, DARK, LOW_CONTRAST, RIM,
-                                   min(rows, 999) if rows > 0 else -1, min(end_rows, 999) if end_rows > 0 else -1,
-                                   OK, RIM, near))
+                                   rows if rows > 0 else -1, end_rows if end_rows > 0 else -1, OK, RIM, near))
     if n and counts is not None:
         counts[OK] -= n
         counts[RIM] += n
     return n
+
+
+def _mark_spans(reason: np.ndarray, spans: np.ndarray, code: int) -> None:
+    """Set ``code`` on the still-OK pixels of row spans ``(v, u_first, u_last)`` (n, 3) of
+    ``reason`` (H, W) uint8, in place (finish_pixels keeps any non-zero input reason)."""
+    for v, a, b in spans.tolist():
+        row = reason[v, a:b + 1]
+        row[row == OK] = code
 
 
 def _rim_rule_rows(column_rel, region, reg_off_px, reason, done, changed_rows, params: DecodeParams) -> np.ndarray:
@@ -776,9 +783,8 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     idx = uw.index_regions(cls.labels, un.relative, un.region, n_reg, pattern, params.unwrap)
     # stretches of rows whose own markers contradict their region's offset (a surface welded in
     # across a depth edge): reported as unindexed.  finish_pixels keeps any non-zero input reason.
-    for v, a, b in uw.marker_conflicts(cls.labels, un, idx, pattern, params.unwrap, cls.gn, cls.bn).tolist():
-        row = cls.reason[v, a:b + 1]
-        row[row == OK] = UNINDEXED
+    _mark_spans(cls.reason, uw.marker_conflicts(cls.labels, un, idx, pattern, params.unwrap, cls.gn, cls.bn),
+                UNINDEXED)
     t5 = time.perf_counter()
     ms["index"] = (t5 - t4) * 1e3
 
@@ -834,9 +840,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         reg_off = np.where(idx.indexed, idx.offset * pattern.stripe_px, np.nan).astype(np.float32)
         rim_rule(column_rel, un.region, reg_off, cls.reason, params)
     if late_spans is not None:
-        for v, a, b in late_spans.tolist():
-            row = cls.reason[v, a:b + 1]
-            row[row == OK] = UNINDEXED
+        _mark_spans(cls.reason, late_spans, UNINDEXED)
     t6 = time.perf_counter()
     ms["subpixel"] = (t6 - t5) * 1e3
 
@@ -855,8 +859,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         cls.reason, cls.labels, region, un.relative, column_rel, un.inconsistent, reg_shift, reg_indexed,
         reg_margin, cls.contrast, int(pattern.stripe_px), int(pattern.n_stripes), float(params.min_contrast),
         len(REASONS))
-    if params.rim_guard_px > 0 or params.rim_end_rows > 0:
-        rim_guard(mask, column, stripe, conf, params.rim_guard_px, counts, params.rim_end_rows)
+    rim_guard(mask, column, stripe, conf, params.rim_guard_px, counts, params.rim_end_rows)
     t7 = time.perf_counter()
     ms["finish"] = (t7 - t6) * 1e3
     ms["total"] = (t7 - t0) * 1e3

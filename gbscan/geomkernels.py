@@ -167,46 +167,6 @@ def pencil_points(mx, my, column, xc, ax, ay, az, ad, bx, by, bz, bd, naa, nab, 
     return n_guard
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def cross_ratio_points(mx, my, column, col, nor, dd, lut, lut0, sin2_min, lo, hi, out):  # pragma: no cover
-    """The general kernel (planes need not form a pencil): :func:`gbscan.triangulate.ray_depths`
-    per pixel with rays ``(mx, my, 1)``; writes points or NaN into ``out`` (3 N,) float32.
-    The angle test ``|n . r| >= sin(min_angle)`` on both enclosing planes reads
-    ``(n . m)^2 >= sin^2 |m|^2``."""
-    P = col.size
-    n_lut = lut.size
-    for p in range(column.size):
-        x = np.float64(column[p])
-        if not (x >= lo and x <= hi):
-            out[3 * p] = np.nan
-            out[3 * p + 1] = np.nan
-            out[3 * p + 2] = np.nan
-            continue
-        k = int(x - lut0)
-        i = lut[min(max(k, 0), n_lut - 1)]
-        while i < P - 2 and col[i + 1] <= x:
-            i += 1
-        rx, ry = mx[p], my[p]
-        j = i + 2 if i + 2 < P else i - 1
-        N0 = nor[i, 0] * rx + nor[i, 1] * ry + nor[i, 2]
-        N1 = nor[i + 1, 0] * rx + nor[i + 1, 1] * ry + nor[i + 1, 2]
-        N2 = nor[j, 0] * rx + nor[j, 1] * ry + nor[j, 2]
-        D0, D1, D2 = dd[i], dd[i + 1], dd[j]
-        x0, x1, x2 = col[i], col[i + 1], col[j]
-        a = (x2 - x0) * (x - x1)
-        b = (x2 - x1) * (x - x0)
-        e20 = D2 * N0 - D0 * N2
-        e21 = D2 * N1 - D1 * N2
-        s = (b * D1 * e20 - a * D0 * e21) / (b * N1 * e20 - a * N0 * e21)
-        m2 = sin2_min * (rx * rx + ry * ry + 1.0)
-        ok = (N0 * N0 >= m2) & (N1 * N1 >= m2) & (s > 0.0) & (s < np.inf)
-        s = s if ok else np.nan
-        out[3 * p] = np.float32(s * rx)
-        out[3 * p + 1] = np.float32(s * ry)
-        out[3 * p + 2] = np.float32(s)
-
-
-# -- grid mesh -----------------------------------------------------------------------------------
 @njit(cache=True, nogil=True)
 def grid_mesh_arrays(xyz, valid, use_valid, max_jump, normals, use_normals):  # pragma: no cover
     """The organised-grid mesh of :func:`gbscan.mesh.grid_mesh` (see there for the rules).

@@ -2064,31 +2064,6 @@ def spacing_cuts(j_x, seg_j0, seg_j1, ratio):
 
 
 @njit(cache=True, nogil=True)
-def marker_conflicts(labels, relative, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_ub, seg_region,
-                     reg_offset, reg_indexed, is_marker, min_run_px, min_events):
-    """Pixels of indexed regions whose own row contradicts the region's marker placement.
-
-    A region's offset is fixed by all of its markers at once; a segment that crossed a depth edge
-    where the stripes of two surfaces happen to line up (the colour sequence stays valid) carries
-    part of the other surface with a shift of an even number of stripes.  Along each segment the
-    runs are checked against the region's offset: a cyan run of at least ``min_run_px`` pixels on
-    a marker stripe *agrees*, a cyan run on a non-marker stripe or a green/blue run of at least
-    ``min_run_px`` pixels on a marker stripe *disagrees*.  A stretch between two agreeing runs (or
-    the segment's end) holding at least ``min_events`` disagreements is rejected, the agreeing
-    runs at its ends included (the jump lies somewhere in between, and the boundary next to it
-    belongs to neither surface), with the unlabelled gaps between them.  A shifted stretch shows
-    two kinds of disagreement (its markers where none belong, green/blue where the region's
-    markers belong); a single one is usually a marker missed at a rim.  ``is_marker`` (n_stripes,) bool; stripes outside it are neutral.
-    Returns the rejected spans, (n, 3) int32 rows ``(v, u_first, u_last)`` (no image-size output).
-    """
-    # the clean-run rule off: the same kernel (one definition of the run/stretch logic)
-    no_channel = np.zeros((1, 1), np.float32)
-    return marker_conflicts_clean(labels, no_channel, no_channel, relative, seg_row, seg_u0, seg_u1, seg_j0, seg_j1,
-                                  j_ua, j_ub, seg_region, reg_offset, reg_indexed, is_marker, min_run_px, min_events,
-                                  0.0)
-
-
-@njit(cache=True, nogil=True)
 def check_vertical(labels, relative, region):
     """Paper step 7 kernel: (H, W) bool, a pixel whose upper or lower neighbour has the same
     colour (not NONE) and region (>= 0) but another relative index."""
@@ -2692,17 +2667,31 @@ def slope_verdicts(c, k, side, lr_near, lr_deep, comps, offsets, lim_near, lim_d
 
 
 @njit(cache=True, nogil=True)
-def marker_conflicts_clean(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_ub,
-                           seg_region, reg_offset, reg_indexed, is_marker, min_run_px, min_events, clean_level):
-    """:func:`marker_conflicts` where a *clean* disagreement is decisive on its own.
+def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_ub,
+                     seg_region, reg_offset, reg_indexed, is_marker, min_run_px, min_events, clean_level):
+    """Pixels of indexed regions whose own row contradicts the region's marker placement.
 
-    ``gn, bn`` (H, W) float32 are the green and blue channels normalised between their local min
-    and max (``gbscan.decode.Classified``).  A projected marker lights both channels, so even a
+    A region's offset is fixed by all of its markers at once; a segment that crossed a depth edge
+    where the stripes of two surfaces happen to line up (the colour sequence stays valid) carries
+    part of the other surface with a shift of an even number of stripes.  Along each segment the
+    runs are checked against the region's offset: a cyan run of at least ``min_run_px`` pixels on
+    a marker stripe *agrees*, a cyan run on a non-marker stripe or a green/blue run of at least
+    ``min_run_px`` pixels on a marker stripe *disagrees*.  A stretch between two agreeing runs (or
+    the segment's end) holding at least ``min_events`` disagreements is rejected, the agreeing
+    runs at its ends included (the jump lies somewhere in between, and the boundary next to it
+    belongs to neither surface), with the unlabelled gaps between them.  A shifted stretch shows
+    two kinds of disagreement (its markers where none belong, green/blue where the region's
+    markers belong); a single one is usually a marker missed at a rim.  ``is_marker``
+    (n_stripes,) bool; stripes outside it are neutral.
+
+    A *clean* disagreement is decisive on its own.  ``gn, bn`` (H, W) float32 are the green and
+    blue channels normalised between their local min and max (``gbscan.decode.Classified``).
+    A projected marker lights both channels, so even a
     marker pixel the classifier calls green or blue (a missed marker: skin, a rim) keeps the
     other channel well up (``min(gn, bn)`` ~0.3-0.5); on a green or blue stripe the other
     channel sits at its local minimum.  A green/blue run on a marker stripe whose mean
     ``min(gn, bn)`` is below ``clean_level`` is therefore no missed marker but another stripe:
-    it counts as ``min_events`` disagreements (``clean_level <= 0``: as :func:`marker_conflicts`).
+    it counts as ``min_events`` disagreements (``clean_level <= 0``: off; ``gn, bn`` are not read).
     Cyan on a non-marker stripe still counts one (glints, the hard preset's noise).
     Returns the rejected spans, (n, 3) int32 rows ``(v, u_first, u_last)``.
     """

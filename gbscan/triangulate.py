@@ -42,8 +42,8 @@ projector, :meth:`PlaneTable.pencil`), the plane of a column in closed form,
 float32 points: equal to the reference rounded to float32).  The angle test of the reference is
 on the two calibrated planes enclosing the column; the vectorised kernel only counts pixels
 whose ray comes within that angle plus four plane spacings of the plane at ``x``, and a frame
-with any such pixel is redone by the general compiled kernel (the reference's algorithm on the
-same rays).  Planes that are not a pencil always take the general kernel.
+with any such pixel is redone by the reference's compiled kernel on the same rays, normalised.
+Planes that are not a pencil always take that kernel.
 """
 from __future__ import annotations
 
@@ -206,7 +206,6 @@ class GridTriangulator:
         self.max_extra_px = float(min(max_extrapolate_px, 2 * planes.spacing_px))
         self.lo = float(planes.column[0] - self.max_extra_px)
         self.hi = float(planes.column[-1] + self.max_extra_px)
-        self.sin2_min = float(np.sin(np.radians(self.min_angle_deg)) ** 2)
         self.pencil = planes.pencil()
         if self.pencil is not None:
             # the plane at x is within one plane spacing of the enclosing calibrated planes (two
@@ -218,7 +217,7 @@ class GridTriangulator:
             a, b = self.pencil.a, self.pencil.b
             self._pencil_args = (self.pencil.xc, a[0], a[1], a[2], self.pencil.ad, b[0], b[1], b[2], self.pencil.bd,
                                  float(a @ a), float(a @ b), float(b @ b))
-        self._unit_rays = None  # (H * W, 3), only for two-plane tables
+        self._unit_rays = None  # (H * W, 3) float64, made for the first frame off the pencil path
         self.last_path = None  # "pencil", "general" or "linear": how the last frame went (tests, benches)
 
     def __call__(self, column: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -242,18 +241,14 @@ class GridTriangulator:
             if n_guard == 0:
                 self.last_path = "pencil"
                 return out
-        pl = self.planes
-        if pl.n_planes < 3:  # two planes: the reference's linear depth interpolation
-            if self._unit_rays is None:
-                m = np.stack([self.mx, self.my, np.ones_like(self.mx)], axis=1)
-                self._unit_rays = m / np.linalg.norm(m, axis=1, keepdims=True)
-            triangulate(self._unit_rays, flat, pl, min_angle_deg=self.min_angle_deg,
-                        max_extrapolate_px=self.max_extra_px, out=o.reshape(-1, 3))
-            self.last_path = "linear"
-            return out
-        gk.cross_ratio_points(self.mx, self.my, flat, pl.column, pl.normal, pl.d, pl.lut, pl.lut0, self.sin2_min,
-                              self.lo, self.hi, o)
-        self.last_path = "general"
+        # not a pencil, or a ray near the grazing angle: the reference's compiled kernel on these
+        # pixels' unit rays (two planes: its linear depth interpolation)
+        if self._unit_rays is None:
+            m = np.stack([self.mx, self.my, np.ones_like(self.mx)], axis=1)
+            self._unit_rays = m / np.linalg.norm(m, axis=1, keepdims=True)
+        triangulate(self._unit_rays, flat, self.planes, min_angle_deg=self.min_angle_deg,
+                    max_extrapolate_px=self.max_extra_px, out=o.reshape(-1, 3))
+        self.last_path = "linear" if self.planes.n_planes < 3 else "general"
         return out
 
 

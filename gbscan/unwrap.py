@@ -720,9 +720,8 @@ def marker_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, patter
     (see :func:`gbscan.kernels.marker_conflicts`).  The decoder reports these pixels unindexed.
     With ``gn, bn`` (H, W) float32 (the classifier's locally normalised green and blue), a *clean*
     green/blue run on a marker stripe (mean ``min(gn, bn)`` below ``conflict_clean_level``: the
-    other channel dark, no missed marker) is decisive alone
-    (:func:`gbscan.kernels.marker_conflicts_clean`): a strip of another surface welded in where
-    only one of its stripes meets a marker of the region.
+    other channel dark, no missed marker) is decisive alone: a strip of another surface welded in
+    where only one of its stripes meets a marker of the region.
 
     Returns (n, 3) int32 spans ``(row, u_first, u_last)`` (inclusive; may overlap), empty for the
     pure pattern; :func:`spans_mask` turns them into an (H, W) bool image.
@@ -735,19 +734,16 @@ def marker_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, patter
     is_marker = np.zeros(pattern.n_stripes, np.bool_)
     is_marker[pattern.marker_indices()] = True
     sg = un.segments
-    if gn is not None and bn is not None and float(params.conflict_clean_level) > 0:
-        return kernels.marker_conflicts_clean(np.ascontiguousarray(labels, dtype=np.uint8),
-                                              np.ascontiguousarray(gn, dtype=np.float32),
-                                              np.ascontiguousarray(bn, dtype=np.float32), un.relative, sg.row,
-                                              sg.u0, sg.u1, sg.j0, sg.j1, sg.j_ua, sg.j_ub,
-                                              un.seg_region.astype(np.int32), idx.offset.astype(np.int64),
-                                              idx.indexed.astype(np.bool_), is_marker, int(params.conflict_run_px),
-                                              int(params.conflict_events), float(params.conflict_clean_level))
-    return kernels.marker_conflicts(np.ascontiguousarray(labels, dtype=np.uint8), un.relative, sg.row,
-                                    sg.u0, sg.u1, sg.j0, sg.j1, sg.j_ua, sg.j_ub,
-                                    un.seg_region.astype(np.int32), idx.offset.astype(np.int64),
-                                    idx.indexed.astype(np.bool_), is_marker, int(params.conflict_run_px),
-                                    int(params.conflict_events))
+    clean = gn is not None and bn is not None and float(params.conflict_clean_level) > 0
+    no_channel = np.zeros((1, 1), np.float32)  # read only when the clean rule is on
+    return kernels.marker_conflicts(np.ascontiguousarray(labels, dtype=np.uint8),
+                                          np.ascontiguousarray(gn, dtype=np.float32) if clean else no_channel,
+                                          np.ascontiguousarray(bn, dtype=np.float32) if clean else no_channel,
+                                          un.relative, sg.row, sg.u0, sg.u1, sg.j0, sg.j1, sg.j_ua, sg.j_ub,
+                                          un.seg_region.astype(np.int32), idx.offset.astype(np.int64),
+                                          idx.indexed.astype(np.bool_), is_marker, int(params.conflict_run_px),
+                                          int(params.conflict_events),
+                                          float(params.conflict_clean_level) if clean else 0.0)
 
 
 def spans_mask(spans: np.ndarray, shape) -> np.ndarray:

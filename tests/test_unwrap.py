@@ -392,8 +392,8 @@ def test_marker_conflicts_a_clean_disagreement_is_decisive_a_missed_marker_is_no
     assert uw.marker_conflicts(lab, un, idx, spec, off, gn, bn).shape == (0, 3)
 
 
-def test_marker_conflicts_clean_kernel_equals_the_old_one_without_clean_runs():
-    """On the welded image of the two-event test the clean kernel finds the same spans (its
+def test_marker_conflicts_with_channels_equal_the_two_event_rule_without_clean_runs():
+    """On the welded image of the two-event test the clean rule finds the same spans (its
     disagreements are cyan-less stripes too, but two of them already reject the stretch)."""
     spec = PatternSpec()
     lab = welded_image(spec)
