@@ -58,6 +58,16 @@ class DecodeParams:
     """Decoder parameters (px are camera pixels).
 
     blur_sigma_along_px, blur_sigma_across_px : Gaussian sigma along / across the stripes.
+        ``blur_sigma_along_px=None`` (the default) chooses it per frame from the frame's stripe
+        signal-to-noise ratio (:func:`auto_blur_sigma`): the blur averages noise along the stripes
+        but pulls the boundaries where stripes bend or end, so a clean frame wants little of it and
+        a noisy one more.
+    blur_auto_gain_px, blur_auto_min_px, blur_auto_max_px : the automatic sigma is
+        ``clip(blur_auto_gain_px / SNR, min, max)`` in steps of 0.25 px.  Measured on the
+        simulator's 35-scene sweep (``scripts/sweep_decode.py``): the typical preset (SNR ~20-40)
+        decodes best at sigma ~1 (sphere/head scans: depth RMS 0.143/0.272 -> 0.117/0.239 mm, more
+        pixels kept, fewer wrong ones on depth edges), the hard preset (SNR ~4-8) at 2.5-3 (plane
+        67 -> 74 % reported), against the fixed 2 px used before.
     stripe_angle_deg : stripe direction in the image, 0 = vertical (fast separable path).
     balance_window_px : colour-balance window (odd int); 0/None = whole image (uniform objects).
     threshold : "local" (d against its local mean) or "global" (d against 0).
@@ -92,11 +102,14 @@ class DecodeParams:
     rim_end_px : pixels at most this far (camera px) from the end of their row's stretch of
         decoded columns, and as close to a dark / saturated / low-contrast pixel, are masked "rim"
         (left/right silhouettes and shadow edges: the local min/max windows mix in the background;
-        0: never).
+        0: never).  2 since the blur became automatic: with sigma 1 the pull rule no longer masks
+        the 2nd-3rd pixel next to a slanted shadow edge, whose column was up to 1.1 projector px
+        off (3 mm on the multi-object scene's wall at 900 mm; 1 -> 2: none left, seeds 0-2).
     rim_guard_px : reported pixels at most this many rows above or below a striped pixel the
-        decoder could not index (unindexed, isolated) are masked "rim" (0: never).  At a
-        horizontal silhouette over a surface the decoder drops, the along-stripe blur carries the
-        reported surface's stripes 1-2 rows onto the dropped one, where they would be triangulated
+        decoder could not index (unindexed, isolated) are masked "rim" (0: never; None, the
+        default: the blur's sigma rounded, at least 1 -- :func:`guard_rows`).  At a horizontal
+        silhouette over a surface the decoder drops, the along-stripe blur carries the reported
+        surface's stripes about a sigma onto the dropped one, where they would be triangulated
         on the wrong surface; nothing in the columns shows it.  See :func:`rim_guard`.
     rim_end_rows : reported pixels at most this many rows above or below a pixel without signal
         (dark, saturated, low contrast) or masked "rim" are masked "rim" (0: never): the top and
@@ -105,8 +118,11 @@ class DecodeParams:
         end row was up to 2.8 projector px off).
     """
 
-    blur_sigma_along_px: float = 2.0
+    blur_sigma_along_px: float | None = None
     blur_sigma_across_px: float = 0.0
+    blur_auto_gain_px: float = 20.0
+    blur_auto_min_px: float = 1.0
+    blur_auto_max_px: float = 3.0
     stripe_angle_deg: float = 0.0
     balance_window_px: int | None = None
     threshold: str = "local"
@@ -122,16 +138,23 @@ class DecodeParams:
     extrapolate: float = 0.75
     unwrap: UnwrapParams = field(default_factory=UnwrapParams)
     rim_bias_px: float = 0.7
-    rim_end_px: int = 1
-    rim_guard_px: int = 2
+    rim_end_px: int = 2
+    rim_guard_px: int | None = None
     rim_end_rows: int = 1
 
     def __post_init__(self):
         def bad(name, why):
             raise GBError(f"DecodeParams.{name}: {why}")
 
-        if not (self.blur_sigma_along_px >= 0 and self.blur_sigma_across_px >= 0):
-            bad("blur_sigma_*_px", "sigmas must be >= 0")
+        along = self.blur_sigma_along_px
+        if along is not None and (isinstance(along, bool) or not isinstance(along, (int, float))
+                                  or not 0 <= along <= 50):
+            bad("blur_sigma_along_px", f"must be a sigma in [0, 50] px or None (automatic), got {along!r}")
+        if not 0 <= self.blur_sigma_across_px <= 50:
+            bad("blur_sigma_across_px", f"must be a sigma in [0, 50] px, got {self.blur_sigma_across_px!r}")
+        if not 0 <= self.blur_auto_min_px <= self.blur_auto_max_px <= 50 or not self.blur_auto_gain_px > 0:
+            bad("blur_auto_*", "need 0 <= blur_auto_min_px <= blur_auto_max_px <= 50 and blur_auto_gain_px > 0, got "
+                f"{self.blur_auto_min_px}, {self.blur_auto_max_px}, {self.blur_auto_gain_px}")
         if not math.isfinite(self.stripe_angle_deg) or abs(self.stripe_angle_deg) > 45:
             bad("stripe_angle_deg", f"must be within [-45, 45] degrees of vertical, got {self.stripe_angle_deg}")
         if self.balance_window_px not in (None, 0) and int(self.balance_window_px) < 3:
@@ -150,6 +173,8 @@ class DecodeParams:
             bad("rim_bias_px/rim_end_px", "must be >= 0 (0 disables the rule)")
         for name in ("rim_guard_px", "rim_end_rows"):
             v = getattr(self, name)
+            if v is None and name == "rim_guard_px":
+                continue
             if isinstance(v, bool) or not float(v).is_integer() or int(v) < 0:
                 bad(name, f"must be a whole number of rows >= 0 (0 disables the rule), got {v!r}")
 
@@ -259,6 +284,40 @@ def linearize(image_rgb: np.ndarray, camera_gamma: float = 2.2) -> tuple[np.ndar
 
 
 # -- step 1: motion blurring --------------------------------------------------------------------
+#: :func:`auto_blur_sigma` samples every SNR_STEP[1]-th pixel of every SNR_STEP[0]-th row
+SNR_STEP = (8, 2)
+#: the sigma used when a frame has too few lit samples to measure its SNR
+FALLBACK_SIGMA_PX = 2.0
+
+
+def _sigma_along(params: DecodeParams) -> float:
+    """``params.blur_sigma_along_px``; for automatic params not resolved against a frame (the
+    rules' direct callers), ``FALLBACK_SIGMA_PX``.  :func:`decode` resolves it per frame."""
+    s = params.blur_sigma_along_px
+    return FALLBACK_SIGMA_PX if s is None else float(s)
+
+
+def auto_blur_sigma(image_rgb: np.ndarray, params: DecodeParams = DecodeParams()) -> tuple[float, float]:
+    """The along-stripe blur sigma (camera px) for this frame and its stripe SNR.
+
+    image_rgb : (H, W, 3) uint8 RGB.  The SNR is the stripe modulation over the noise of ``g - b``
+    in linear DN (:func:`gbscan.kernels.stripe_snr` on a ``SNR_STEP`` grid of the pixels with some
+    light, ~0.1 ms at 640x480).  The sigma is ``blur_auto_gain_px / SNR`` clipped to
+    ``[blur_auto_min_px, blur_auto_max_px]`` and rounded to 0.25 px, so that frames of one
+    sequence get the same sigma unless their conditions really differ.  Fewer than 500 lit
+    samples: ``FALLBACK_SIGMA_PX`` and SNR 0.
+    """
+    from . import kernels
+
+    lut = gamma_lut(params.camera_gamma)
+    noise, mod, n = kernels.stripe_snr(image_rgb, lut, SNR_STEP[0], SNR_STEP[1], float(max(4.0 * params.dark_level, 1.0)))
+    if n < 500 or mod <= 0:
+        return FALLBACK_SIGMA_PX, 0.0
+    snr = float(mod) / max(float(noise), 0.05)
+    sigma = min(max(params.blur_auto_gain_px / snr, params.blur_auto_min_px), params.blur_auto_max_px)
+    return round(4.0 * sigma) / 4.0, snr
+
+
 def _gauss1d(sigma: float) -> np.ndarray:
     if sigma <= 0:
         return np.ones(1, np.float32)
@@ -361,10 +420,16 @@ def balance_scales(g: np.ndarray, b: np.ndarray, floor: float = 0.5) -> tuple[np
     """Global colour-balance factors ``1 / mean`` of two (H, W) float32 channels (``floor`` as in
     :func:`colour_balance`): the means over every 4th pixel in both directions (plenty for a
     global mean) that is lit (either channel above ``4 floor``; all of them if fewer than 16 are),
-    summed in float64 in row-major order (``kernels.lit_means``; the fast path shares it)."""
+    summed in float64 in row-major order (``kernels.lit_means``; the fast path shares it, on the
+    samples ``kernels.balance_samples`` blurs alone: :func:`_sample_scales`)."""
+    return _sample_scales(g[::4, ::4], b[::4, ::4], floor)
+
+
+def _sample_scales(gs: np.ndarray, bs: np.ndarray, floor: float = 0.5) -> tuple[np.float32, np.float32]:
+    # balance_scales on its samples (every 4th row and column of the blurred channels)
     from . import kernels
 
-    mg, mb, _ = kernels.lit_means(g[::4, ::4], b[::4, ::4], np.float32(4.0 * floor))
+    mg, mb, _ = kernels.lit_means(gs, bs, np.float32(4.0 * floor))
     return np.float32(1.0 / max(mg, floor)), np.float32(1.0 / max(mb, floor))
 
 
@@ -485,7 +550,7 @@ def rim_rule(column_rel: np.ndarray, region: np.ndarray, reg_off_px: np.ndarray,
     """
     from . import kernels
 
-    sigma = float(params.blur_sigma_along_px)
+    sigma = _sigma_along(params)
     modelled = sigma > 0 and abs(params.stripe_angle_deg) < 1e-9
     pull = float(params.rim_bias_px) if modelled else 0.0
     half = max(1, int(round(math.sqrt(3.0) * sigma)))
@@ -495,6 +560,14 @@ def rim_rule(column_rel: np.ndarray, region: np.ndarray, reg_off_px: np.ndarray,
                                 np.ascontiguousarray(region, dtype=np.int32),
                                 np.ascontiguousarray(reg_off_px, dtype=np.float32), reason, half, pull,
                                 int(params.rim_end_px), RIM, pull_out))
+
+
+def guard_rows(params: DecodeParams) -> int:
+    """The rows :func:`rim_guard` masks next to a dropped surface: ``rim_guard_px``, or when it is
+    None the along-stripe blur's sigma rounded (at least 1): how far the blur carries stripes."""
+    if params.rim_guard_px is not None:
+        return int(params.rim_guard_px)
+    return max(1, int(round(_sigma_along(params))))
 
 
 def rim_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confidence: np.ndarray,
@@ -541,7 +614,7 @@ def _rim_rule_rows(column_rel, region, reg_off_px, reason, done, changed_rows, p
     in place and returned) is recomputed on the rows within ``h`` of ``changed_rows`` (sorted,
     the rows where the inputs differ), each band with ``h`` rows of context on either side."""
     H = reason.shape[0]
-    h = max(1, int(round(math.sqrt(3.0) * float(params.blur_sigma_along_px))))
+    h = max(1, int(round(math.sqrt(3.0) * _sigma_along(params))))
     hit = np.zeros(H + 1, np.int32)
     np.add.at(hit, np.clip(changed_rows - h, 0, H), 1)
     np.add.at(hit, np.clip(changed_rows + h + 1, 0, H), -1)
@@ -641,24 +714,37 @@ def fast_path(params: DecodeParams, keep_stages: bool = False) -> bool:
 
 
 class _Workspace:
-    """Per-thread scratch of the fast path for one frame size: linear and blurred green and blue,
-    the raw maximum, and the classification images that never leave :func:`decode` (reason, gn,
-    bn, contrast; the StripeMap copies what it keeps).  Reused from frame to frame: fresh pages
-    cost more than the arithmetic here (a page fault each 4 KiB).  31 bytes per pixel per
-    decoding thread."""
+    """Per-thread scratch of the fast path for one frame size: the classification images that
+    never leave :func:`decode` (reason, gn, bn, contrast; the StripeMap copies what it keeps),
+    rim_guard's flags, the blurred samples of the colour balance (``kernels.balance_samples``)
+    and the row rings of ``kernels.stream_frame`` (the linear and blurred channels never exist as
+    whole images).  Reused from frame to frame: fresh pages cost more than the arithmetic here (a
+    page fault each 4 KiB).  14 bytes per pixel per decoding thread (+ the rings: about 40 rows)."""
 
     def __init__(self, H: int, W: int):
         self.shape = (H, W)
-        self.lin_g = np.empty((H, W), np.float32)
-        self.lin_b = np.empty((H, W), np.float32)
-        self.raw_max = np.empty((H, W), np.uint8)
-        self.g = np.empty((H, W), np.float32)
-        self.b = np.empty((H, W), np.float32)
         self.gn = np.empty((H, W), np.float32)
         self.bn = np.empty((H, W), np.float32)
         self.contrast = np.empty((H, W), np.float32)
         self.reason = np.empty((H, W), np.uint8)
         self.near = np.empty((H, W), np.uint8)  # rim_guard's flags
+        Hs, Ws = -(-H // 4), -(-W // 4)
+        self.samples = (np.empty((Hs, Ws), np.float32), np.empty((Hs, Ws), np.float32))
+        self._rings: tuple | None = None
+
+    def rings(self, n_linear: int, n_blurred: int) -> tuple:
+        """The rows of ``kernels.stream_frame``: linear green, blue (float32), raw maximum (uint8),
+        blurred green, blue (float32), each (rows, W), at least ``n_linear`` / ``n_blurred`` rows
+        (the kernel takes larger rings: one set serves every blur radius and window met so far)."""
+        if self._rings is None or self._rings[0].shape[0] < n_linear or self._rings[3].shape[0] < n_blurred:
+            W = self.shape[1]
+            if self._rings is not None:
+                n_linear = max(n_linear, self._rings[0].shape[0])
+                n_blurred = max(n_blurred, self._rings[3].shape[0])
+            self._rings = (np.empty((n_linear, W), np.float32), np.empty((n_linear, W), np.float32),
+                           np.empty((n_linear, W), np.uint8), np.empty((n_blurred, W), np.float32),
+                           np.empty((n_blurred, W), np.float32))
+        return self._rings
 
 
 _THREAD = threading.local()
@@ -705,12 +791,13 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     params : :class:`DecodeParams`.
     keep_stages : also return the intermediate images in ``StripeMap.stages`` (previews).
 
-    Stages 1-3 run fused (``kernels.blur_frame`` + ``kernels.classify_frame``) when
+    Stages 1-3 run fused (``kernels.balance_samples``: the colour balance's samples, then
+    ``kernels.stream_frame``: linearise, blur and classify in one pass over the rows) when
     :func:`fast_path` allows (vertical stripes, no blur across them, global colour balance, no
     stages kept); otherwise the named functions run one after another.  Both give bit-identical
     results (same row arithmetic).  ``stats['ms']``: input (validation; + linearisation on the
-    staged path), blur (+ linearisation on the fast path), balance, classify, unwrap, index,
-    subpixel, finish, total.
+    staged path), blur (on the fast path: only the balance samples), balance, classify (on the
+    fast path: linearisation, blur and classification), unwrap, index, subpixel, finish, total.
 
     Returns a :class:`StripeMap`.  Raises GBError for unusable input (grey image, bad dtype,
     NaN); an image without a usable stripe signal gives an empty StripeMap whose ``stats['why']``
@@ -727,28 +814,35 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     t0 = time.perf_counter()
     img = validate_image(image_rgb)
     H, W = img.shape[:2]
+    snr = None
+    if params.blur_sigma_along_px is None:  # automatic: from this frame's stripe SNR
+        sigma, snr = auto_blur_sigma(img, params)
+        params = dataclasses.replace(params, blur_sigma_along_px=sigma)
     dark_why = ("image is dark: no projected light seen "
                 f"(green/blue never reach dark_level={params.dark_level:g} linear DN)")
     if fast_path(params, keep_stages):
-        # stages 1-3 fused: two passes over the rows, no full-size temporaries but the blurred
-        # channels (a per-thread workspace, reused from frame to frame like the other scratch)
+        # stages 1-3 fused: the colour balance's samples blurred alone, then one pass over the rows
+        # (linearise, blur, classify; rows in rings, a per-thread workspace reused from frame to
+        # frame like the other scratch).  ms: "blur" the samples, "classify" the row pass.
         ws = _workspace(H, W)
         lut = gamma_lut(params.camera_gamma)
+        kh = _gauss_half(params.blur_sigma_along_px)
+        thr_w = _threshold_window(params)
         t = time.perf_counter()
         ms["input"] = (t - t0) * 1e3
-        top = kernels.blur_frame(img, lut, _gauss_half(params.blur_sigma_along_px), ws.lin_g, ws.lin_b, ws.raw_max,
-                                 ws.g, ws.b)
+        kernels.balance_samples(img, lut, kh, *ws.samples)
         t1 = time.perf_counter()
         ms["blur"] = (t1 - t) * 1e3
-        if top == 0 or lut[top] < params.dark_level:
-            return empty_stripemap((H, W), pattern, DARK, dark_why, {"ms": ms})
-        sg, sb = balance_scales(ws.g, ws.b)
+        sg, sb = _sample_scales(*ws.samples)
         t2 = time.perf_counter()
         ms["balance"] = (t2 - t1) * 1e3
         labels = np.empty((H, W), np.uint8)
-        kernels.classify_frame(ws.lin_g, ws.lin_b, ws.raw_max, ws.g, ws.b, sg, sb, _threshold_window(params),
-                               int(params.norm_window_px) | 1, *_rule_args(params),
-                               labels, ws.reason, ws.gn, ws.bn, ws.contrast)
+        top = kernels.stream_frame(img, lut, kh, sg, sb, thr_w, int(params.norm_window_px) | 1, *_rule_args(params),
+                                   *ws.rings(*kernels.stream_rows(kh.size - 1, thr_w)),
+                                   labels, ws.reason, ws.gn, ws.bn, ws.contrast)
+        if top == 0 or lut[top] < params.dark_level:
+            ms["classify"] = (time.perf_counter() - t2) * 1e3
+            return empty_stripemap((H, W), pattern, DARK, dark_why, {"ms": ms})
         cls = Classified(labels, ws.reason, None, None, ws.gn, ws.bn, ws.contrast)
         blurred = balanced = None
     else:
@@ -859,7 +953,11 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         cls.reason, cls.labels, region, un.relative, column_rel, un.inconsistent, reg_shift, reg_indexed,
         reg_margin, cls.contrast, int(pattern.stripe_px), int(pattern.n_stripes), float(params.min_contrast),
         len(REASONS))
-    rim_guard(mask, column, stripe, conf, params.rim_guard_px, counts, params.rim_end_rows)
+    rim_guard(mask, column, stripe, conf, guard_rows(params), counts, params.rim_end_rows)
+    n_orphans = int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED))
+    if n_orphans:
+        counts[OK] -= n_orphans
+        counts[ISOLATED] += n_orphans
     t7 = time.perf_counter()
     ms["finish"] = (t7 - t6) * 1e3
     ms["total"] = (t7 - t0) * 1e3
@@ -872,6 +970,9 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
                                                                   return_counts=True))} if n_reg else {}
     stats["boundaries"] = int(np.isfinite(jx).sum())
     stats["ms"] = {k: round(v, 3) for k, v in ms.items()}
+    stats["blur_sigma_along_px"] = float(params.blur_sigma_along_px)
+    if snr is not None:
+        stats["snr"] = round(float(snr), 2)
     if not pattern.markers:
         stats["why"] = "pure pattern (no markers): relative stripe index only, see StripeMap.relative/region"
     stages = None

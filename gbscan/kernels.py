@@ -807,8 +807,14 @@ def apply_cuts(seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_par, j_seg, j_u
 # scratch rows as separate arrays (not rows of one 2-D array, nor arrays swapped at run time).
 # Next factor (measured per 640x480 frame, CPU ms of one thread, 1.2-1.4x): the loops are bound by
 # loads and stores in L1/L2, not by memory -- the same two kernels on strips of 32 rows (0.6 MB
-# working set) are no faster than on whole frames, so streaming the blur through the classify
-# pass in a ring of rows would not pay at these sizes.  What paid: fewer passes per
+# working set) are no faster than on whole frames.  Streaming the blur through the classify pass
+# in rings of rows (stream_frame; the colour balance from samples blurred alone first,
+# balance_samples), with the min/max from quads below: stages 1-3 -12..17 % at 640x480 and
+# 1280x1024 (decode's stage ms, interleaved runs, medians), and 17 bytes/px less workspace.  Per 640-px row with every input in L1
+# (us; x480 = ms per frame): linearise 0.83, Gaussian 0.89 (2 channels), d + threshold 0.41,
+# local min/max 0.68 (quads; 0.95 from pairs), their box means 1.3, raw maximum 0.3, per-pixel
+# rule 1.5 (0.45 of it the gn/bn/contrast arithmetic with its 4 divisions, the rest the label and
+# reason logic; float 0/1 masks instead of booleans were slower).  What paid: fewer passes per
 # row (windows of 8..15: pair extrema / pair sums stored, the rest formed in registers; gauss_rows
 # four terms per pass, two output rows per pass in blur_frame), the LUT's max loop apart from the
 # gathers over a flat byte row, float32 codes in classify_row.  What did not: 13 taps in one
@@ -1379,31 +1385,65 @@ def _minmax4_last8(a0, a1, a2, a3, w, r0, r1, r2, r3):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _pair_minmax2(g, b, h, a0, a1, a2, a3):
-    # pair minima / maxima (a0, a1 of g; a2, a3 of b) of the rows padded by h samples each side
-    # (BORDER_REPLICATE), as _slide_minmax2's first pass computes them from padded copies
+def _quad_minmax2(g, b, h, q0, q1, q2, q3):
+    # extrema of every 4 consecutive samples of the rows g, b (W,) padded by h samples each side
+    # (BORDER_REPLICATE), without forming the padded rows: q0/q1 min/max of g, q2/q3 of b at
+    # j < W + 2h - 3 (samples j .. j+3 of the padded row).  With _minmax4_from_quads: windows of
+    # 8..16 from 4 quads (min/max are exact in any order), 12 loads per pixel and channel pair
+    # instead of 18 from the pairs (measured 640-px rows: 0.95 -> 0.68 us).
     W = g.size
-    A0, A1, A2, A3 = a0[h:h + W - 1], a1[h:h + W - 1], a2[h:h + W - 1], a3[h:h + W - 1]
-    g1 = g[1:]
-    b1 = b[1:]
-    for u in range(W - 1):
-        x = g[u]
-        y = g1[u]
-        A0[u] = min(x, y)
-        A1[u] = max(x, y)
-        x = b[u]
-        y = b1[u]
-        A2[u] = min(x, y)
-        A3[u] = max(x, y)
-    for k in range(h):
-        a0[k] = g[0]
-        a1[k] = g[0]
-        a2[k] = b[0]
-        a3[k] = b[0]
-        a0[h + W - 1 + k] = g[W - 1]
-        a1[h + W - 1 + k] = g[W - 1]
-        a2[h + W - 1 + k] = b[W - 1]
-        a3[h + W - 1 + k] = b[W - 1]
+    m = W - 3
+    Q0, Q1, Q2, Q3 = q0[h:h + m], q1[h:h + m], q2[h:h + m], q3[h:h + m]
+    g1, g2, g3 = g[1:], g[2:], g[3:]
+    b1, b2, b3 = b[1:], b[2:], b[3:]
+    for u in range(m):
+        x0 = g[u]
+        x1 = g1[u]
+        x2 = g2[u]
+        x3 = g3[u]
+        Q0[u] = min(min(x0, x1), min(x2, x3))
+        Q1[u] = max(max(x0, x1), max(x2, x3))
+        x0 = b[u]
+        x1 = b1[u]
+        x2 = b2[u]
+        x3 = b3[u]
+        Q2[u] = min(min(x0, x1), min(x2, x3))
+        Q3[u] = max(max(x0, x1), max(x2, x3))
+    for k in range(2 * h):      # quads reaching into the padding: samples clamped to the row
+        j = k if k < h else m + k
+        s = min(max(j - h, 0), W - 1)
+        lg = hg = g[s]
+        lb = hb = b[s]
+        for i in range(1, 4):
+            s = min(max(j + i - h, 0), W - 1)
+            lg = min(lg, g[s])
+            hg = max(hg, g[s])
+            lb = min(lb, b[s])
+            hb = max(hb, b[s])
+        q0[j] = lg
+        q1[j] = hg
+        q2[j] = lb
+        q3[j] = hb
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _minmax4_from_quads(q0, q1, q2, q3, w, r0, r1, r2, r3):
+    # 8 <= w <= 16: r[i] = min (q0, q2) / max (q1, q3) of the quads at i, i + 4, i + w - 8,
+    # i + w - 4, which cover the window of w samples starting at i; (W,) outputs
+    W = r0.size
+    e = w - 8
+    a, c, d = q0[4:], q0[e:], q0[e + 4:]
+    for i in range(W):
+        r0[i] = min(min(q0[i], a[i]), min(c[i], d[i]))
+    a, c, d = q1[4:], q1[e:], q1[e + 4:]
+    for i in range(W):
+        r1[i] = max(max(q1[i], a[i]), max(c[i], d[i]))
+    a, c, d = q2[4:], q2[e:], q2[e + 4:]
+    for i in range(W):
+        r2[i] = min(min(q2[i], a[i]), min(c[i], d[i]))
+    a, c, d = q3[4:], q3[e:], q3[e + 4:]
+    for i in range(W):
+        r3[i] = max(max(q3[i], a[i]), max(c[i], d[i]))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1565,20 +1605,24 @@ def local_minmax_image(x, w):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _pair_max2(x, y, h, a):
-    # a[i] = max(P[i], P[i + 1]) for the row P = max(x, y) padded by h samples each side
-    # (BORDER_REPLICATE), i < W + 2h - 1, without forming P
+def _quad_max2(x, y, h, q):
+    # q[j] = max(P[j .. j+3]) for the row P = max(x, y) padded by h samples each side
+    # (BORDER_REPLICATE), j < W + 2h - 3, without forming P
     W = x.size
-    A = a[h:h + W - 1]
-    x1 = x[1:]
-    y1 = y[1:]
-    for u in range(W - 1):
-        A[u] = max(max(x[u], y[u]), max(x1[u], y1[u]))
-    m0 = max(x[0], y[0])
-    m1 = max(x[W - 1], y[W - 1])
-    for k in range(h):
-        a[k] = m0
-        a[h + W - 1 + k] = m1
+    m = W - 3
+    Q = q[h:h + m]
+    x1, x2, x3 = x[1:], x[2:], x[3:]
+    y1, y2, y3 = y[1:], y[2:], y[3:]
+    for u in range(m):
+        Q[u] = max(max(max(x[u], y[u]), max(x1[u], y1[u])), max(max(x2[u], y2[u]), max(x3[u], y3[u])))
+    for k in range(2 * h):
+        j = k if k < h else m + k
+        s = min(max(j - h, 0), W - 1)
+        a = max(x[s], y[s])
+        for i in range(1, 4):
+            s = min(max(j + i - h, 0), W - 1)
+            a = max(a, max(x[s], y[s]))
+        q[j] = a
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1587,12 +1631,13 @@ def _raw_hi_row(raw_g, raw_b, w, P, ta, tb, out):
     W = out.size
     h = w // 2
     if 8 <= w < 16:
-        # the pair maxima straight from the two rows (no padded copy), then _slide_max's last pass
-        _pair_max2(raw_g, raw_b, h, ta)
-        q = ta[w - 8:]
+        # the maxima of 4 samples straight from the two rows (no padded copy), then the window
+        # from 4 of them (as _minmax4_from_quads)
+        _quad_max2(raw_g, raw_b, h, ta)
+        e = w - 8
+        a, c, d = ta[4:], ta[e:], ta[e + 4:]
         for i in range(W):
-            out[i] = max(max(max(ta[i], ta[i + 2]), max(ta[i + 4], ta[i + 6])),
-                         max(max(q[i], q[i + 2]), max(q[i + 4], q[i + 6])))
+            out[i] = max(max(ta[i], a[i]), max(c[i], d[i]))
         return
     p = P[h:h + W]
     for u in range(W):
@@ -1648,20 +1693,10 @@ def blur_frame(img, lut, kh, Lg, Lb, rmax, Bg, Bb):
     rows = np.empty(2 * r + 2, np.int64)
     top = np.uint8(0)
     loaded = 0
-    flat = img.reshape(H, 3 * W)    # rows of bytes: the maximum loop vectorises (measured: LUT
-    for y in range(0, H, 2):        # stage 0.52 -> 0.24 ms at 640x480 with the two loops apart)
+    flat = img.reshape(H, 3 * W)    # rows of bytes (see _linear_row)
+    for y in range(0, H, 2):
         while loaded <= min(H - 1, y + 1 + r):
-            lg = Lg[loaded]
-            lb = Lb[loaded]
-            rm = rmax[loaded]
-            px = flat[loaded]
-            for u in range(W):
-                m = max(px[3 * u + 1], px[3 * u + 2])
-                rm[u] = m
-                top = max(top, m)
-            for u in range(W):
-                lg[u] = lut[px[3 * u + 1]]
-                lb[u] = lut[px[3 * u + 2]]
+            top = _linear_row(flat[loaded], lut, Lg[loaded], Lb[loaded], rmax[loaded], top)
             loaded += 1
         for j in range(2 * r + 2):
             rows[j] = reflect101(y - r + j, H)
@@ -1687,87 +1722,193 @@ def classify_frame(Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w, cyan_level, min_
     ``d`` rows of the threshold window live in a ring buffer.  Lg, Lb, rmax, Bg, Bb : (H, W) from
     :func:`blur_frame` (linear, raw maximum, blurred).  thr_w : odd local
     threshold window (0: global threshold).  Writes labels, reason, gn, bn, contrast ((H, W)).
+    (:func:`stream_frame` runs the same steps on rows it blurs as it goes.)
     """
     H, W = Bg.shape
+    sc = _classify_scratch(W, thr_w, norm_w)
+    for y in range(H + thr_w // 2):
+        _classify_step(y, H, Lg, Lb, rmax, H, Bg, Bb, H, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin,
+                       min_contrast, dark_level, saturation_level, sc, labels, reason, gn, bn, contrast)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _classify_scratch(W, thr_w, norm_w):
+    # the row scratch of _classify_step: separate arrays (rows of one 2-D array would not vectorise)
+    t = thr_w // 2
+    n = W + 2 * (norm_w // 2)
+    nt = W + 2 * t
+    f32 = np.float32
+    return (np.empty((2 * t + 2, W), f32), np.empty(2 * t + 2, np.int64),                    # Dr, rows
+            np.empty(nt, f32), np.empty(nt, f32), np.empty(nt, f32), np.zeros(W, f32),         # Pd, tda, tdb, thr
+            np.empty(n, f32), np.empty(n, f32),                                                 # Pg, Pb
+            np.empty(n, f32), np.empty(n, f32), np.empty(n, f32), np.empty(n, f32),             # LOg, HIg, LOb, HIb
+            np.empty(n, f32), np.empty(n, f32), np.empty(n, f32), np.empty(n, f32),             # s0 .. s3
+            np.empty(n, f32), np.empty(n, f32), np.empty(n, f32), np.empty(n, f32),             # s4 .. s7
+            np.empty(n, f32), np.empty(n, f32),                                                 # ta, tb
+            np.empty(W, f32), np.empty(W, f32), np.empty(W, f32), np.empty(W, f32),             # lo_g .. hi_b
+            np.empty(W, f32))                                                                   # raw_hi
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _classify_step(y, H, Lg, Lb, rmax, nL, Bg, Bb, nB, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin,
+                   min_contrast, dark_level, saturation_level, sc, labels, reason, gn, bn, contrast):
+    # Step y of stages 2-3 (y = 0 .. H + thr_w//2 - 1): d of blurred row y (y < H) into the ring of
+    # the threshold window, then row v = y - thr_w//2 classified (v >= 0).  Image row k of the
+    # linear (Lg, Lb, rmax) and blurred (Bg, Bb) channels is row k % nL / k % nB of those arrays
+    # (whole images: nL = nB = H; rings: the rows these two steps read must still be there).
+    (Dr, rows, Pd, tda, tdb, thr, Pg, Pb, LOg, HIg, LOb, HIb, s0, s1, s2, s3, s4, s5, s6, s7, ta, tb,
+     lo_g, hi_g, lo_b, hi_b, raw_hi) = sc
+    W = Bg.shape[1]
     t = thr_w // 2
     h = norm_w // 2
     nD = 2 * t + 2
-    f32 = np.float32
-    Dr = np.empty((nD, W), f32)
-    rows = np.empty(nD, np.int64)
-    nt = W + 2 * t
-    Pd = np.empty(nt, f32)
-    tda = np.empty(nt, f32)
-    tdb = np.empty(nt, f32)
-    thr = np.zeros(W, f32)
-    n = W + 2 * h
-    Pg = np.empty(n, f32)
-    Pb = np.empty(n, f32)
-    LOg = np.empty(n, f32)
-    HIg = np.empty(n, f32)
-    LOb = np.empty(n, f32)
-    HIb = np.empty(n, f32)
-    s0 = np.empty(n, f32)   # separate scratch rows (rows of one 2-D array would not vectorise)
-    s1 = np.empty(n, f32)
-    s2 = np.empty(n, f32)
-    s3 = np.empty(n, f32)
-    s4 = np.empty(n, f32)
-    s5 = np.empty(n, f32)
-    s6 = np.empty(n, f32)
-    s7 = np.empty(n, f32)
-    ta = np.empty(n, f32)
-    tb = np.empty(n, f32)
-    lo_g = np.empty(W, f32)
-    hi_g = np.empty(W, f32)
-    lo_b = np.empty(W, f32)
-    hi_b = np.empty(W, f32)
-    raw_hi = np.empty(W, f32)
-    s_thr = f32(1.0 / (thr_w * thr_w)) if thr_w > 0 else f32(0.0)
-    s_norm = f32(1.0 / norm_w)
+    v = y - t
+    if t > 0 and v - t - 1 >= 0 and y < H:
+        # column_sums' update step with the new row's d computed in the same loop
+        _ratio_update_row(Bg[y % nB], Bb[y % nB], sg, sb, Dr[y % nD], Dr[(v - t - 1) % nD], Pd[t:t + W])
+    else:
+        if y < H:
+            ratio_row(Bg[y % nB], Bb[y % nB], sg, sb, Dr[y % nD])
+        if t > 0 and v >= 0:
+            column_sums(Dr, v, H, thr_w, nD, rows, Pd)
+    if v < 0:
+        return
+    if t > 0:
+        pad_reflect101(Pd, t, W)
+        box_row(Pd, thr_w, tda, tdb, np.float32(1.0 / (thr_w * thr_w)), thr)
+    g = Bg[v % nB]
+    b = Bb[v % nB]
+    raw_g = Lg[v % nL]
+    raw_b = Lb[v % nL]
+    # _minmax_smooth_row of both channels, in shared loops
+    if 8 <= norm_w < 16:    # (the same values without the padded copies: min/max are exact)
+        _quad_minmax2(g, b, h, s0, s1, s2, s3)
+        _minmax4_from_quads(s0, s1, s2, s3, norm_w, LOg[h:h + W], HIg[h:h + W], LOb[h:h + W], HIb[h:h + W])
+    else:
+        pg = Pg[h:h + W]
+        pb = Pb[h:h + W]
+        for u in range(W):
+            pg[u] = g[u]
+            pb[u] = b[u]
+        pad_replicate(Pg, h, W)
+        pad_replicate(Pb, h, W)
+        _slide_minmax2(Pg, Pb, norm_w, s0, s1, s2, s3, s4, s5, s6, s7, LOg, HIg, LOb, HIb, h)
+    pad_replicate(LOg, h, W)
+    pad_replicate(HIg, h, W)
+    pad_replicate(LOb, h, W)
+    pad_replicate(HIb, h, W)
+    s_norm = np.float32(1.0 / norm_w)
+    if 8 <= norm_w < 16:
+        _box4_8to15(LOg, HIg, LOb, HIb, norm_w, s0, s_norm, lo_g, hi_g, lo_b, hi_b)
+    else:
+        _box4(LOg, HIg, LOb, HIb, norm_w, s0, s1, s2, s3, s4, s5, s6, s7, s_norm, lo_g, hi_g, lo_b, hi_b)
+    _raw_hi_row(raw_g, raw_b, norm_w, Pg, ta, tb, raw_hi)
+    classify_row(g, b, Dr[v % nD], thr, lo_g, hi_g, lo_b, hi_b, raw_g, raw_b, raw_hi, rmax[v % nL], cyan_level,
+                 min_level, raw_margin, min_contrast, dark_level, saturation_level,
+                 labels[v], reason[v], gn[v], bn[v], contrast[v])
+
+
+def stream_rows(radius: int, thr_w: int) -> tuple[int, int]:
+    """Ring sizes (rows) of :func:`stream_frame` for a Gaussian of ``radius`` rows and a threshold
+    window ``thr_w`` (0: global): linear rows ``nL``, blurred rows ``nB``.  When row v is classified
+    the linear rows up to v + t + r + 1 are loaded (t = thr_w // 2: the blur runs t rows ahead, two
+    rows at a time) and rows from min(v, v + t + 1 - r) are still to be read: at most
+    r + max(r, t) + 2 rows (what :func:`stream_frame` requires); the blurred rows v .. v + t + 1:
+    t + 2 rows.  One row spare in each."""
+    t = thr_w // 2
+    return radius + max(radius, t) + 3, t + 3
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _linear_row(px, lut, lg, lb, rm, top):
+    # one row of bytes (3 W,) RGB -> linear green, blue (lut) and the raw maximum; returns the
+    # running maximum ``top``.  The maximum loop apart from the gathers over a flat byte row
+    # vectorises (measured: LUT stage 0.52 -> 0.24 ms at 640x480 with the two loops apart).
+    W = lg.size
+    for u in range(W):
+        m = max(px[3 * u + 1], px[3 * u + 2])
+        rm[u] = m
+        top = max(top, m)
+    for u in range(W):
+        lg[u] = lut[px[3 * u + 1]]
+        lb[u] = lut[px[3 * u + 2]]
+    return top
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def balance_samples(img, lut, kh, gs, bs):
+    """The blurred linear green and blue of an RGB uint8 frame at every 4th row and column (what
+    :func:`gbscan.decode.balance_scales` averages), without blurring the rest: ``gs[i, k]`` =
+    :func:`blur_frame`'s ``Bg[4 i, 4 k]``, bit for bit (the same :func:`gauss_rows` arithmetic on
+    a subset of its columns; the linear columns in a ring of 2r + 2 rows).
+    gs, bs : (ceil(H/4), ceil(W/4)) float32 outputs.  ``img`` C-contiguous."""
+    H = img.shape[0]
+    Ws = gs.shape[1]
+    r = kh.size - 1
+    n = 2 * r + 2
+    Sg = np.empty((n, Ws), np.float32)
+    Sb = np.empty((n, Ws), np.float32)
+    rows = np.empty(2 * r + 1, np.int64)
+    loaded = 0
+    for i in range(gs.shape[0]):
+        v = 4 * i
+        while loaded <= min(H - 1, v + r):
+            px = img[loaded]
+            lg = Sg[loaded % n]
+            lb = Sb[loaded % n]
+            for k in range(Ws):
+                lg[k] = lut[px[4 * k, 1]]
+                lb[k] = lut[px[4 * k, 2]]
+            loaded += 1
+        for j in range(2 * r + 1):
+            rows[j] = reflect101(v - r + j, H) % n
+        gauss_rows(Sg, rows, kh, gs[i])
+        gauss_rows(Sb, rows, kh, bs[i])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def stream_frame(img, lut, kh, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin, min_contrast,
+                 dark_level, saturation_level, Rg, Rb, Rm, Qg, Qb, labels, reason, gn, bn, contrast):
+    """Stages "input", 1, 2 (with the global scales ``sg, sb``, from :func:`balance_samples`) and 3
+    of the fast path in one pass over the rows: each image row is linearised into a ring of rows
+    (Rg, Rb float32, Rm uint8 raw maximum: (nL, W)), blurred into a ring (Qg, Qb: (nB, W)) as soon
+    as the Gaussian's support is there, and classified as soon as its threshold window is
+    (:func:`_classify_step`).  Ring sizes from :func:`stream_rows`.  Bit-identical to
+    :func:`blur_frame` + :func:`classify_frame`, without their full-size linear and blurred images
+    (17 bytes/px written and read back).  Writes labels, reason, gn, bn, contrast ((H, W)); returns
+    the largest raw green or blue value (0: a black frame)."""
+    H, W = img.shape[0], img.shape[1]
+    r = kh.size - 1
+    t = thr_w // 2
+    nL = Rg.shape[0]
+    nB = Qg.shape[0]
+    if nL < r + max(r, t) + 2 or nB < t + 2:
+        raise ValueError("stream_frame: rings too small (see stream_rows)")
+    grow = np.empty(2 * r + 2, np.int64)
+    flat = img.reshape(H, 3 * W)
+    top = np.uint8(0)
+    loaded = 0
+    yb = 0                      # next blurred row
+    sc = _classify_scratch(W, thr_w, norm_w)
     for y in range(H + t):
-        v = y - t
-        if t > 0 and v - t - 1 >= 0 and y < H:
-            # column_sums' update step with the new row's d computed in the same loop
-            _ratio_update_row(Bg[y], Bb[y], sg, sb, Dr[y % nD], Dr[(v - t - 1) % nD], Pd[t:t + W])
-        else:
-            if y < H:
-                ratio_row(Bg[y], Bb[y], sg, sb, Dr[y % nD])
-            if t > 0 and v >= 0:
-                column_sums(Dr, v, H, thr_w, nD, rows, Pd)
-        if v < 0:
-            continue
-        if t > 0:
-            pad_reflect101(Pd, t, W)
-            box_row(Pd, thr_w, tda, tdb, s_thr, thr)
-        g = Bg[v]
-        b = Bb[v]
-        raw_g = Lg[v]
-        raw_b = Lb[v]
-        # _minmax_smooth_row of both channels, in shared loops
-        if 8 <= norm_w < 16:    # (the same values without the padded copies: min/max are exact)
-            _pair_minmax2(g, b, h, s0, s1, s2, s3)
-            _minmax4_last8(s0, s1, s2, s3, norm_w, LOg[h:h + W], HIg[h:h + W], LOb[h:h + W], HIb[h:h + W])
-        else:
-            pg = Pg[h:h + W]
-            pb = Pb[h:h + W]
-            for u in range(W):
-                pg[u] = g[u]
-                pb[u] = b[u]
-            pad_replicate(Pg, h, W)
-            pad_replicate(Pb, h, W)
-            _slide_minmax2(Pg, Pb, norm_w, s0, s1, s2, s3, s4, s5, s6, s7, LOg, HIg, LOb, HIb, h)
-        pad_replicate(LOg, h, W)
-        pad_replicate(HIg, h, W)
-        pad_replicate(LOb, h, W)
-        pad_replicate(HIb, h, W)
-        if 8 <= norm_w < 16:
-            _box4_8to15(LOg, HIg, LOb, HIb, norm_w, s0, s_norm, lo_g, hi_g, lo_b, hi_b)
-        else:
-            _box4(LOg, HIg, LOb, HIb, norm_w, s0, s1, s2, s3, s4, s5, s6, s7, s_norm, lo_g, hi_g, lo_b, hi_b)
-        _raw_hi_row(raw_g, raw_b, norm_w, Pg, ta, tb, raw_hi)
-        classify_row(g, b, Dr[v % nD], thr, lo_g, hi_g, lo_b, hi_b, raw_g, raw_b, raw_hi, rmax[v], cyan_level,
-                     min_level, raw_margin, min_contrast, dark_level, saturation_level,
-                     labels[v], reason[v], gn[v], bn[v], contrast[v])
+        while yb <= y and yb < H:
+            while loaded <= min(H - 1, yb + 1 + r):
+                k = loaded % nL
+                top = _linear_row(flat[loaded], lut, Rg[k], Rb[k], Rm[k], top)
+                loaded += 1
+            for j in range(2 * r + 2):
+                grow[j] = reflect101(yb - r + j, H) % nL
+            if yb + 1 < H and r >= 3:    # two rows at a time, as blur_frame
+                gauss_rows2(Rg, grow, kh, Qg[yb % nB], Qg[(yb + 1) % nB])
+                gauss_rows2(Rb, grow, kh, Qb[yb % nB], Qb[(yb + 1) % nB])
+                yb += 2
+            else:
+                gauss_rows(Rg, grow[:2 * r + 1], kh, Qg[yb % nB])
+                gauss_rows(Rb, grow[:2 * r + 1], kh, Qb[yb % nB])
+                yb += 1
+        _classify_step(y, H, Rg, Rb, Rm, nL, Qg, Qb, nB, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin,
+                       min_contrast, dark_level, saturation_level, sc, labels, reason, gn, bn, contrast)
+    return top
 
 
 @njit(cache=True, nogil=True)
@@ -2082,28 +2223,43 @@ def check_vertical(labels, relative, region):
     return bad
 
 
-@njit(cache=True, nogil=True)
-def _abs_row(column_rel, region, reg_off, v, out, weight):
+@njit(cache=True, nogil=True, error_model="numpy")
+def _abs_row(column_rel, region, off1, v, kk, tmp, out, weight):
     # absolute columns of row v into out (W,) (0 where none) and weight (W,) (1 where one): a
     # column of an indexed region; an unlabelled gap pixel inside a segment (region -1 with a
-    # column) takes its left neighbour's region
+    # column) takes its left neighbour's region.  off1 = [NaN] + reg_off (indexed by region + 1);
+    # kk (W,) int32 and tmp (W,) float32 scratch.  Branch-free loops, one array written per loop
+    # (they vectorise; an in-place select would not), dark rows skipped.
     W = out.shape[0]
+    reg = region[v]
+    crel = column_rel[v]
+    mx = np.int32(-1)
     for u in range(W):
-        k = region[v, u]
-        if k < 0 and u > 0:
-            k = region[v, u - 1]
-        c = np.float32(np.nan)
-        if k >= 0:
-            c = column_rel[v, u] + reg_off[k]
-        if c == c:
-            out[u] = c
-            weight[u] = 1.0
-        else:
+        mx = max(mx, reg[u])
+    if mx < 0:   # no region in the row: no columns
+        for u in range(W):
             out[u] = 0.0
+        for u in range(W):
             weight[u] = 0.0
+        return False
+    kk[0] = max(reg[0], -1) + 1
+    a = reg[:W - 1]
+    b = reg[1:]
+    k1 = kk[1:]
+    for i in range(W - 1):
+        k = b[i]
+        k = a[i] if k < 0 else k
+        k1[i] = max(k, -1) + 1
+    for u in range(W):
+        tmp[u] = crel[u] + off1[kk[u]]
+    for u in range(W):
+        weight[u] = np.float32(1.0) if tmp[u] == tmp[u] else np.float32(0.0)
+    for u in range(W):
+        out[u] = tmp[u] if tmp[u] == tmp[u] else np.float32(0.0)
+    return True
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, rim_code, pull_out):
     """Mask ``rim_code`` into ``reason`` (H, W) uint8, in place where it is 0, where a column is
     unreliable near a silhouette or bend (see :func:`gbscan.decode.rim_rule`); returns the count.
@@ -2116,18 +2272,36 @@ def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, 
     * *end*: at most ``end_px`` (0: off) px from the end of the pixel's row stretch of columns
       and as close to a pixel whose reason is 1..3 (no signal: dark, saturated, low contrast).
     ``pull_out`` (H, W) float32 receives ``M[c] - c`` (pass a (0, 0) array to skip).
-    Row-major with per-image-column accumulators; no image-size temporaries.
+    Row-major with per-image-column accumulators; no image-size temporaries.  Per row: the pull
+    test branch-free over the row, the end test's window only where the window is not all
+    columns (a stretch end), and the few flagged pixels found 8 at a time (the flag rows read as
+    uint64 words), then masked in order (as one sequential pass would).
     """
     H, W = column_rel.shape
     want = pull_out.shape[0] == H and pull_out.shape[1] == W
     n_ring = 2 * half_px + 2
     ring = np.empty((n_ring, W), np.float32)   # absolute columns of rows v - half_px - 1 .. v + half_px
     ring_w = np.empty((n_ring, W), np.float32)  # ... 1 where there is one
+    has = np.zeros(n_ring, np.bool_)            # ... whether the row has region pixels at all
     num = np.zeros(W, np.float64)
     den = np.zeros(W, np.float64)
+    kk = np.empty(W, np.int32)
+    tmp = np.empty(W, np.float32)
+    Wp = (W + 7) & ~7
+    flag = np.zeros(Wp, np.uint8)    # pull rule hits
+    need = np.zeros(Wp, np.uint8)    # pixels whose end-rule window must be looked at
+    fin = np.zeros(W, np.uint8)      # 1 where a relative column
+    ok = np.zeros(W, np.uint8)       # 1 where the end rule's window is all columns, inside the image
+    flag64 = flag.view(np.uint64)
+    need64 = need.view(np.uint64)
+    off1 = np.empty(reg_off.shape[0] + 1, np.float32)
+    off1[0] = np.nan
+    off1[1:] = reg_off
+    pull = max_pull_px > 0
+    rc = np.uint8(rim_code)
     n_rim = 0
     for v in range(min(half_px, H)):
-        _abs_row(column_rel, region, reg_off, v, ring[v % n_ring], ring_w[v % n_ring])
+        has[v % n_ring] = _abs_row(column_rel, region, off1, v, kk, tmp, ring[v % n_ring], ring_w[v % n_ring])
         for u in range(W):
             num[u] += ring[v % n_ring, u]
             den[u] += ring_w[v % n_ring, u]
@@ -2135,50 +2309,89 @@ def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, 
         va = v + half_px                      # row entering the window
         vb = v - half_px - 1                  # row leaving it
         if va < H:
-            _abs_row(column_rel, region, reg_off, va, ring[va % n_ring], ring_w[va % n_ring])
-            if max_pull_px > 0:
-                rin = ring[va % n_ring]
-                win = ring_w[va % n_ring]
+            rin = ring[va % n_ring]
+            win = ring_w[va % n_ring]
+            has[va % n_ring] = _abs_row(column_rel, region, off1, va, kk, tmp, rin, win)
+            if pull:
                 for u in range(W):                # branch-free running sums
                     num[u] += rin[u]
+                for u in range(W):
                     den[u] += win[u]
-        if vb >= 0 and max_pull_px > 0:
+        if vb >= 0 and pull:
             rout = ring[vb % n_ring]
             wout = ring_w[vb % n_ring]
             for u in range(W):
                 num[u] -= rout[u]
+            for u in range(W):
                 den[u] -= wout[u]
+        if not has[v % n_ring]:   # no region in row v: nothing to mask
+            continue
         row = ring[v % n_ring]
         roww = ring_w[v % n_ring]
-        for u in range(W):
-            if roww[u] == 0:
+        crel = column_rel[v]
+        anyf = np.uint8(0)
+        if pull:
+            for u in range(W):
+                dev = num[u] - row[u] * den[u]          # den * pull, no division
+                x = np.uint8((roww[u] != 0) & (abs(dev) > max_pull_px * den[u]))
+                flag[u] = x
+                anyf |= x
+            if want:
+                for u in range(W):
+                    if roww[u] != 0:
+                        pull_out[v, u] = (num[u] - row[u] * den[u]) / den[u]
+        else:
+            for u in range(W):
+                flag[u] = 0
+        if end_px > 0:
+            # only a pixel with no column somewhere in its window (or whose window leaves the
+            # image) can be at a stretch end: the window test runs only there (few pixels)
+            for u in range(W):
+                fin[u] = np.uint8(crel[u] == crel[u])
+            for u in range(W):
+                ok[u] = 0
+            if W > 2 * end_px:
+                n_in = W - 2 * end_px
+                oi = ok[end_px:W - end_px]
+                c0 = fin[end_px:W - end_px]
+                for i in range(n_in):
+                    oi[i] = c0[i]
+                for d in range(1, end_px + 1):
+                    lo = fin[end_px - d:W - end_px - d]
+                    hi = fin[end_px + d:W - end_px + d]
+                    for i in range(n_in):
+                        oi[i] &= lo[i] & hi[i]
+            for u in range(W):
+                x = np.uint8((roww[u] != 0) & (flag[u] == 0) & (ok[u] == 0))
+                need[u] = x
+                anyf |= x
+        else:
+            for u in range(W):
+                need[u] = 0
+        if anyf == 0:
+            continue
+        # the flagged pixels, in order: the end rule reads the reasons as masked so far
+        rsn = reason[v]
+        for wi in range(Wp >> 3):
+            if (flag64[wi] | need64[wi]) == 0:
                 continue
-            c = row[u]
-            rim = False
-            if max_pull_px > 0:
-                dev = num[u] - c * den[u]          # den * pull, no division in the common case
-                if want:
-                    pull_out[v, u] = dev / den[u]
-                rim = abs(dev) > max_pull_px * den[u]
-            if not rim and end_px > 0:
-                # at the end of the row stretch and next to no signal (reason 1..3), both
-                # within end_px; the common case (a column on both sides) exits at once
-                if (u >= end_px and u + end_px < W and column_rel[v, u - 1] == column_rel[v, u - 1]
-                        and column_rel[v, u + 1] == column_rel[v, u + 1] and end_px == 1):
-                    pass
-                else:
+            for u in range(wi * 8, min(wi * 8 + 8, W)):
+                rim = flag[u] != 0
+                if need[u] != 0:
+                    # at the end of the row stretch and next to no signal (reason 1..3), both
+                    # within end_px
                     at_end = u - end_px < 0 or u + end_px >= W
                     near_dark = False
                     for x in range(max(u - end_px, 0), min(u + end_px, W - 1) + 1):
-                        cx = reason[v, x]
+                        cx = rsn[x]
                         if x != u and cx >= 1 and cx <= 3:
                             near_dark = True
-                        if column_rel[v, x] != column_rel[v, x]:
+                        if crel[x] != crel[x]:
                             at_end = True
                     rim = at_end and near_dark
-            if rim and reason[v, u] == 0:
-                reason[v, u] = rim_code
-                n_rim += 1
+                if rim and rsn[u] == 0:
+                    rsn[u] = rc
+                    n_rim += 1
     return n_rim
 
 
@@ -2922,11 +3135,112 @@ def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows
             hitrow[u] = h
             any_hit |= h
         if any_hit:
-            for u in range(W):
-                if hitrow[u]:
-                    mrow[u] = rim_code
-                    column[v, u] = np.nan
-                    stripe[v, u] = -1
-                    conf[v, u] = 0.0
-                    n += 1
+            n += _unreport_row(hitrow, mrow, column[v], stripe[v], conf[v], rim_code)
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _unreport_row(hit, mrow, col, stripe, conf, code):
+    """Mask ``code`` the pixels of one row where ``hit`` is set: column NaN, stripe -1,
+    confidence 0 (the final outputs of :func:`finish_pixels`); returns their count."""
+    n = 0
+    for u in range(hit.shape[0]):
+        if hit[u]:
+            mrow[u] = code
+            col[u] = np.nan
+            stripe[u] = -1
+            conf[u] = 0.0
+            n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def stripe_snr(img, lut, row_step, col_step, lit_dn):
+    """Stripe signal-to-noise ratio of a frame, from every ``col_step``-th pixel of every
+    ``row_step``-th row (cheap: 1/(row_step col_step) of the pixels, three rows read for each).
+
+    img (H, W, 3) uint8 RGB; lut (256,) float32 encoded -> linear DN (``decode.gamma_lut``);
+    lit_dn: samples whose linear green or blue reaches this count.  On ``d = g - b`` (linear):
+
+    * noise (DN): robust standard deviation of the vertical second difference
+      ``d[v-1] - 2 d[v] + d[v+1]`` (variance ``6 sigma^2`` for white noise), ``1.4826 * MAD``;
+      the stripes run along the columns, so the difference removes them and leaves the noise
+      (bends and silhouettes add a few large values, which the median ignores);
+    * modulation (DN): the 80th percentile of ``|d|`` (the stripe's swing, away from its
+      boundaries).
+
+    Returns (noise_dn, modulation_dn, n_samples); histograms of 0.05 DN (noise) and 0.25 DN
+    (modulation) bins give the quantiles in one pass."""
+    H, W = img.shape[0], img.shape[1]
+    nb_n = 2048
+    nb_m = 1024
+    hn = np.zeros(nb_n, np.int64)
+    hm = np.zeros(nb_m, np.int64)
+    inv6 = 1.0 / np.sqrt(6.0)
+    n = 0
+    for v in range(1, H - 1, row_step):
+        for u in range(0, W, col_step):
+            g1 = lut[img[v, u, 1]]
+            b1 = lut[img[v, u, 2]]
+            if g1 < lit_dn and b1 < lit_dn:
+                continue
+            d0 = lut[img[v - 1, u, 1]] - lut[img[v - 1, u, 2]]
+            d1 = g1 - b1
+            d2 = lut[img[v + 1, u, 1]] - lut[img[v + 1, u, 2]]
+            e = abs(d0 - 2.0 * d1 + d2) * inv6
+            k = int(e * 20.0)
+            hn[min(k, nb_n - 1)] += 1
+            k = int(abs(d1) * 4.0)
+            hm[min(k, nb_m - 1)] += 1
+            n += 1
+    if n == 0:
+        return 0.0, 0.0, 0
+    # median of the noise histogram, 80th percentile of the modulation one (bin centres)
+    med = _hist_quantile(hn, (n + 1) // 2) / 20.0
+    mod = _hist_quantile(hm, int(np.ceil(0.8 * n))) / 4.0
+    return 1.4826 * med, mod, n
+
+
+@njit(cache=True, nogil=True)
+def _hist_quantile(hist, count):
+    """Centre (in bins, ``k + 0.5``) of the first bin where the cumulative count reaches ``count``."""
+    c = 0
+    for k in range(hist.shape[0]):
+        c += hist[k]
+        if c >= count:
+            return k + 0.5
+    return hist.shape[0] - 0.5
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def drop_orphans(mask, column, stripe, conf, ok_code, code):
+    """Mask ``code`` every reported pixel (``mask == ok_code``) none of whose 8 neighbours is
+    reported: a lone pixel left between masked ones has no neighbour to be checked against (the
+    vertical check ran before the rim masks).  column/stripe/conf set to NaN/-1/0; in place;
+    returns the count.  Per row, branch-free: ``vert[u]`` = reported in rows v-1..v+1 at u, a pixel
+    is alone when ``vert`` is clear at u-1 and u+1 and its own column has only itself."""
+    H, W = mask.shape
+    vert = np.zeros(W + 2, np.uint8)   # padded by one column each side
+    other = np.zeros(W, np.uint8)
+    alone = np.zeros(W, np.uint8)
+    n = 0
+    for v in range(H):
+        cur = mask[v]
+        up = mask[v - 1] if v > 0 else mask[v]
+        dn = mask[v + 1] if v + 1 < H else mask[v]
+        has_up = np.uint8(1 if v > 0 else 0)
+        has_dn = np.uint8(1 if v + 1 < H else 0)
+        for u in range(W):
+            a = np.uint8(up[u] == ok_code) & has_up
+            b = np.uint8(dn[u] == ok_code) & has_dn
+            c = np.uint8(cur[u] == ok_code)
+            vert[u + 1] = a | b | c
+            other[u] = a | b
+        hit = np.uint8(0)
+        for u in range(W):
+            x = np.uint8(cur[u] == ok_code) & ~(vert[u] | vert[u + 2] | other[u]) & np.uint8(1)
+            alone[u] = x
+            hit |= x
+        if hit:
+            n += _unreport_row(alone, cur, column[v], stripe[v], conf[v], code)
     return n

@@ -134,6 +134,13 @@ class UnwrapParams:
         (35 scenes) it takes the wrong non-edge pixels 1972 -> 609 (moving multi-object frames 5
         and 6: 768 -> 158, 780 -> 27), coverage 82.06 -> 82.03 % (step_hard 84.40 -> 84.36 %, no
         other scene changes; the test scenes are unchanged).
+    link_slope_unmeasured : such a component is not linked either when fewer than
+        ``_SLOPE_MIN_VOTES`` of its votes have a measurable slope on both sides (the reported
+        surface is a strip too thin to measure, or the component is): the test that guards the
+        contact cannot run.  Found by sweeping the blur: at 1.25 px a 970-px panel hanging from
+        a thin strip of wall was linked 8 stripes off (its one marker fits both offsets); the
+        rule takes the sweep's wrong non-edge pixels 688 -> 0 at that blur for 0.05-0.16 points
+        of coverage at every blur of 1-3 px.
     """
 
     n_ref_pixels: int = 4
@@ -166,6 +173,7 @@ class UnwrapParams:
     link_slope_rows: int = 4
     link_slope_half_px: int = 8
     link_slope_below_rows: int = 3
+    link_slope_unmeasured: bool = True
 
     def __post_init__(self):
         for name in ("n_ref_pixels", "n_ref_rows", "min_region_px", "min_markers", "conflict_run_px",
@@ -810,7 +818,7 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
     segs = un.segments
     w = float(pattern.stripe_px)
     stats = {"components_tried": 0, "components_linked": 0, "pixels_linked": 0, "refused_votes": 0,
-             "refused_markers": 0, "refused_slope": 0}
+             "refused_markers": 0, "refused_slope": 0, "refused_unmeasured": 0}
     empty = Links(un.seg_region.astype(np.int32), idx.offset.astype(np.int64).copy(), idx.indexed.copy(),
                   np.zeros(n_reg, bool), np.zeros(n_reg, np.int64), np.zeros(n_reg, np.int64), stats)
     if params.link_votes <= 0 or segs.n == 0 or un.seg_root is None:
@@ -872,13 +880,21 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
             # across a horizontal depth edge the columns may continue (an even stripe shift) but
             # the column's slope along the row does not (another distance)
             jumps = np.zeros(accept_c.size, bool)
-            jumps[few_rows] = _slope_jumps(vc[good], k[good], vl[good], vv[good], comp, cr, col_abs, un.region,
-                                           accept_c[few_rows], accept_k[few_rows], int(params.link_slope_rows),
-                                           int(params.link_slope_half_px), float(params.link_slope_tol),
-                                           float(params.link_slope_z))
-            stats["refused_slope"] = int(jumps.sum())
+            jumps[few_rows], measured = _slope_jumps(
+                vc[good], k[good], vl[good], vv[good], comp, cr, col_abs, un.region, accept_c[few_rows],
+                accept_k[few_rows], int(params.link_slope_rows), int(params.link_slope_half_px),
+                float(params.link_slope_tol), float(params.link_slope_z), return_measured=True)
+            if params.link_slope_unmeasured:
+                # the guard cannot run: the contact is the component's only tie, and nothing
+                # tells a continuing surface from a lined-up one
+                blind = np.zeros(accept_c.size, bool)
+                blind[few_rows] = measured < _SLOPE_MIN_VOTES
+                stats["refused_unmeasured"] = int((blind & ~jumps).sum())
+                jumps |= blind
+            stats["refused_slope"] = int(jumps.sum()) - stats.get("refused_unmeasured", 0)
             accept_c, accept_k, accept_n = accept_c[~jumps], accept_k[~jumps], accept_n[~jumps]
-    stats["refused_votes"] = stats["components_tried"] - int(accept_c.size) - stats["refused_slope"]
+    stats["refused_votes"] = (stats["components_tried"] - int(accept_c.size) - stats["refused_slope"]
+                              - stats["refused_unmeasured"])
     # the markers at the linked offset must agree with the component's colours
     if accept_c.size:
         is_marker = np.zeros(pattern.n_stripes, np.bool_)
@@ -925,7 +941,7 @@ _SLOPE_NOISE_FLOOR = 0.005  # smallest spread (log slope ratio) assumed of one v
 
 
 def _slope_jumps(vc, vk, vl, vv, comp, col_rel, col_abs, region, comps, offsets, rows: int, half_px: int,
-                 tol: float, z_min: float) -> np.ndarray:
+                 tol: float, z_min: float, return_measured: bool = False):
     """(len(comps),) bool: across the component's agreeing vertical votes the column's slope
     along the row (projector px per camera px) differs between the component and the reported
     pixels it is linked to.
@@ -945,7 +961,9 @@ def _slope_jumps(vc, vk, vl, vv, comp, col_rel, col_abs, region, comps, offsets,
     ``log(1 + tol)`` (near, all votes) or ``log(1 + 2 tol)`` (deep, the votes from above and below
     apart) in size while exceeding ``z_min`` standard errors (``1.4826 * MAD / sqrt(n)``, the MAD
     at least ``_SLOPE_NOISE_FLOOR``: a consistent jump, not the scatter of a noisy frame);
-    otherwise the component is flagged.  Without measured votes it never is.
+    otherwise the component is flagged.  Without measured votes it never is.  ``return_measured``:
+    also return the number of measured *near* votes per component ((len(comps),) int64), for
+    :func:`link_components`' rule that a component the test cannot measure is not linked.
     """
     from . import kernels
 
@@ -968,6 +986,13 @@ def _slope_jumps(vc, vk, vl, vv, comp, col_rel, col_abs, region, comps, offsets,
         lr = np.full(c.size, np.nan)
         lr[fin] = np.log(g_c[fin] / g_s[fin])
         lrs.append(lr)
-    return kernels.slope_verdicts(c, kk, d, lrs[0], lrs[1], comps, np.asarray(offsets, dtype=np.int64),
-                                  float(np.log1p(tol)), float(np.log1p(2 * tol)), float(z_min), _SLOPE_MIN_VOTES,
-                                  _SLOPE_NOISE_FLOOR)
+    out = kernels.slope_verdicts(c, kk, d, lrs[0], lrs[1], comps, np.asarray(offsets, dtype=np.int64),
+                                 float(np.log1p(tol)), float(np.log1p(2 * tol)), float(z_min), _SLOPE_MIN_VOTES,
+                                 _SLOPE_NOISE_FLOOR)
+    if not return_measured:
+        return out
+    # measured near votes per (component, offset): few comps, a mask each
+    offs = np.asarray(offsets, dtype=np.int64)
+    fin = np.isfinite(lrs[0])
+    measured = np.array([int(((c == cc) & (kk == oo) & fin).sum()) for cc, oo in zip(comps, offs)], np.int64)
+    return out, measured

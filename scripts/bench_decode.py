@@ -22,8 +22,9 @@ machine a fault costs about 2 us, i.e. 1-4 ms per frame in a process whose mallo
 memory to the system; here glibc's adaptive thresholds have settled and reuse it), and peak
 memory in bytes per pixel, measured from a released fast-path workspace
 (``gbscan.decode.release_workspace``) so that it counts.  The stage names are decode's
-``stats['ms']`` keys (on the fast path "input" is validation only and "blur" includes the
-linearisation).  The script measures the gbscan of its own checkout.
+``stats['ms']`` keys (on the fast path "input" is validation and the automatic blur's SNR,
+"blur" only the colour-balance sampling, and "classify" includes linearising and blurring: one
+streamed pass; compare blur + balance + classify with older figures).  The script measures the gbscan of its own checkout.
 """
 from __future__ import annotations
 

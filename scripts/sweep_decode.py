@@ -11,7 +11,8 @@ pixel with the simulator's truth (``r.proj_xy``):
 * the wrong pixels grouped by region: size, offset error (stripes), how the region was indexed
   (markers / linked) and its index statistics (markers seen, evidence, mismatch, runner-up).
 
-    python scripts/sweep_decode.py [--cache DIR] [--only SUBSTR] [--quick]
+    python scripts/sweep_decode.py [--cache DIR] [--only SUBSTR] [--quick] [--decode NAME=VALUE]
+    python scripts/sweep_decode.py --cache DIR --blur-grid 1,1.25,1.5,1.75,2,2.25,2.5,2.75,3
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
 wrong non-edge pixels under it (all wrong regions with ``--edges``), and a total.  Progress lines go to stderr.  Renders are cached in ``--cache`` (npz).
@@ -116,7 +117,38 @@ def main(argv=None) -> int:
     ap.add_argument("--edges", action="store_true", help="also list regions wrong only on depth-edge pixels")
     ap.add_argument("--unwrap", action="append", default=[], metavar="NAME=VALUE",
                     help="override an UnwrapParams field (repeatable), e.g. --unwrap link_rows=3")
+    ap.add_argument("--decode", action="append", default=[], metavar="NAME=VALUE",
+                    help="override a DecodeParams number (repeatable), e.g. --decode blur_sigma_along_px=1")
+    ap.add_argument("--blur-grid", metavar="S1,S2,...",
+                    help="run the whole sweep once per fixed blur sigma (px) and print one total line each "
+                         "(the automatic blur picks 1-3 px by the frame's SNR: the index must hold at all)")
     args = ap.parse_args(argv)
+    if args.blur_grid:
+        try:
+            sigmas = [float(x) for x in args.blur_grid.split(",") if x.strip()]
+        except ValueError:
+            ap.error(f"--blur-grid: expected comma-separated sigmas in px, got {args.blur_grid!r}")
+        base = [a for a in (argv if argv is not None else sys.argv[1:])]
+        keep, skip = [], False
+        for a in base:  # the same options without --blur-grid
+            if skip:
+                skip = False
+                continue
+            if a == "--blur-grid":
+                skip = True
+                continue
+            if not a.startswith("--blur-grid="):
+                keep.append(a)
+        print(f"{'blur_px':>7s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'bad scenes':>10s}")
+        for sg in sigmas:
+            import contextlib
+            import io
+            buf = io.StringIO()
+            with contextlib.redirect_stdout(buf):
+                main(keep + ["--decode", f"blur_sigma_along_px={sg}"])
+            tot = buf.getvalue().strip().splitlines()[-1].split()
+            print(f"{sg:7.2f} {tot[1]:>9s} {tot[2]:>6s} {tot[3]:>10s} {tot[-1]:>10s}", flush=True)
+        return 0
 
     from gbscan.decode import DecodeParams, decode
     from gbscan.errors import GBError
@@ -134,7 +166,17 @@ def main(argv=None) -> int:
         if name not in UnwrapParams.__dataclass_fields__ or not val:
             raise GBError(f"--unwrap {item!r}: expected NAME=VALUE with NAME a field of gbscan.unwrap.UnwrapParams")
         over[name] = type(getattr(UnwrapParams(), name))(float(val))
-    params = DecodeParams(unwrap=UnwrapParams(**over))
+    dover = {}
+    for item in args.decode:
+        name, _, val = item.partition("=")
+        fields = DecodeParams.__dataclass_fields__
+        cur = getattr(DecodeParams(), name, None) if name in fields else None
+        optional = name in fields and cur is None and "float" in str(fields[name].type)   # e.g. the blur
+        if not (optional or isinstance(cur, (int, float))) or isinstance(cur, bool) or not val:
+            raise GBError(f"--decode {item!r}: expected NAME=VALUE with NAME a numeric field of "
+                          "gbscan.decode.DecodeParams")
+        dover[name] = float(val) if optional else type(cur)(float(val))
+    params = DecodeParams(unwrap=UnwrapParams(**over), **dover)
     scenes = [s for s in scene_list(args.quick) if not args.only or args.only in s[0]]
     tot = {"lit": 0, "reported": 0, "wrong": 0, "wrong_edge": 0, "bad_scenes": 0}
     print(f"{'scene':26s} {'preset':8s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'ms':>6s}")

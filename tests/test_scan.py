@@ -280,11 +280,30 @@ def test_sim_curved_cleaning_keeps_decoded_good_points(name):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="coverage only: depth RMS and worst error pass (the decoder masks rim pixels "
-                                       "whose columns the vertical blur pulls), but ~88% (sphere) / ~83% (head) of lit "
-                                       "non-edge pixels are kept, not 95%: the rest is rim-pulled, dark at grazing "
-                                       "light, or in fragments of rows too short to locate two stripe boundaries "
-                                       "(below 60 degrees incidence: 99% / 94%)")
+@pytest.mark.parametrize("name, min_kept", [("sphere", 0.995), ("head", 0.94)])
+def test_sim_curved_coverage_away_from_grazing_incidence(name, min_kept):
+    """Where what the full 95 % target misses is: the lit non-edge pixels whose surface faces both
+    the camera and the projector within 70 degrees are kept at 99.9 % (sphere) / 94.9 % (head,
+    whose nose casts shadows and splits regions) at seed 0; the rest (17 % / 21 % of the pixels)
+    are at grazing incidence, where the stripes arrive dim and compressed or are seen edge-on."""
+    from gbscan import sim
+
+    r, s = sim_scan(name)
+    cam, proj = sim.incidence_deg(paper_rig(), r)
+    good = r.lit & ~r.depth_edge & np.isfinite(r.point[..., 2])
+    facing = good & (cam < 70) & (proj < 70)
+    kept = (s.valid & facing).sum() / facing.sum()
+    print(f"{name}: {100 * facing.sum() / good.sum():.1f}% of lit non-edge pixels within 70 degrees of both, "
+          f"{100 * kept:.2f}% of them kept; beyond: {100 * (s.valid & good & ~facing).sum() / (good & ~facing).sum():.1f}%")
+    assert facing.sum() > 0.75 * good.sum() and kept >= min_kept
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="coverage only: depth RMS and worst error pass, but ~91% (sphere) / ~84% (head) "
+                                       "of lit non-edge pixels are kept, not 95%: the rest sits at grazing incidence "
+                                       "(the surface beyond 70 degrees from the camera or the projector: 17% / 21% of "
+                                       "the pixels, where the stripes arrive dim and compressed or are seen edge-on), "
+                                       "and for the face around the nose (within 70 degrees: 99.9% / 94.9% kept)")
 @pytest.mark.parametrize("name", ["sphere", "head"])
 def test_sim_curved_accuracy_full_target(name):
     kept, rms, worst = sim_figures(*sim_scan(name))
@@ -430,7 +449,9 @@ def test_sim_multi_object_gap_edges_remove_what_the_point_map_shows():
 
     r, _ = sim_scan("multi_object")
     cal = calibration_from_rig(paper_rig(), PatternSpec())
-    unguarded = DecodeParams(rim_guard_px=0, rim_end_rows=0)
+    # (measured with the fixed 2 px blur and its rim rules, before the automatic blur: with the
+    # 1 px blur it picks here, 100 -> 67 points, the rim rules removing more of them first)
+    unguarded = DecodeParams(blur_sigma_along_px=2.0, rim_end_px=1, rim_guard_px=0, rim_end_rows=0)
     s = Scanner(cal, decode_params=unguarded).scan(r.image)
     sm = s.stripemap
     scanner = Scanner(cal, decode_params=unguarded,

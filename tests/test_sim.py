@@ -340,3 +340,39 @@ def test_subsurface_scattering_lowers_stripe_contrast(small_rig):
         d = (r.linear[..., 1] - r.linear[..., 2])[r.lit & ~r.depth_edge]
         contrast.append(np.std(d))
     assert contrast[1] < 0.8 * contrast[0]
+
+
+def test_incidence_deg_on_a_tilted_plane_and_a_sphere():
+    """sim.incidence_deg against closed forms: a tilted plane (its normal from a least-squares fit
+    of the true points) and a sphere (normal = radial direction), camera and projector angles to
+    a hundredth of a degree (plane) away from the silhouette; NaN off the surface."""
+    from gbscan import sim
+    from gbscan.pattern import PatternSpec, render_pattern
+
+    rig = sim.paper_rig()
+    frame = render_pattern(PatternSpec())
+    cond = sim.preset("clean")
+    for scene, centre in ((sim.scenes.plane(650.0, (20.0, -35.0)), None),
+                          (sim.scenes.sphere((10.0, -5.0, 640.0), 90.0), np.array([10.0, -5.0, 640.0]))):
+        r = sim.render(rig, scene, frame, cond, seed=0)
+        cam, proj = sim.incidence_deg(rig, r)
+        P = r.point.astype(np.float64)
+        has = np.isfinite(P[..., 2])
+        if centre is None:
+            X = P[has]
+            n = np.linalg.svd(X - X.mean(0), full_matrices=False)[2][2]
+            N = np.broadcast_to(n, P.shape)
+        else:
+            N = (P - centre) / np.linalg.norm(P - centre, axis=-1, keepdims=True)
+        to_cam = -P / np.linalg.norm(P, axis=-1, keepdims=True)
+        to_proj = rig.projector_centre - P
+        to_proj /= np.linalg.norm(to_proj, axis=-1, keepdims=True)
+        N = np.where(np.sum(N * to_cam, -1, keepdims=True) < 0, -N, N)
+        want_c = np.degrees(np.arccos(np.clip(np.sum(N * to_cam, -1), -1, 1)))
+        want_p = np.degrees(np.arccos(np.clip(np.sum(N * to_proj, -1), -1, 1)))
+        inner = has & ~r.depth_edge & (want_c < 80)
+        tol = 0.01 if centre is None else 0.5   # (float32 points; the sphere: differences of a curved surface)
+        assert np.abs(cam - want_c)[inner].max() < tol and np.abs(proj - want_p)[inner].max() < tol
+        assert np.isnan(cam[~has]).all() and np.isnan(proj[~has]).all()
+        if centre is not None:
+            assert np.nanmax(cam[inner]) > 70 and np.nanmin(cam[inner]) < 5

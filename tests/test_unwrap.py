@@ -336,9 +336,9 @@ def test_slope_jumps_kernel_equals_the_numpy_reference(name, monkeypatch):
     calls = []
     real = uw._slope_jumps
 
-    def spy(*args):
+    def spy(*args, **kw):
         calls.append(args)
-        return real(*args)
+        return real(*args, **kw)
 
     monkeypatch.setattr(uw, "_slope_jumps", spy)
     decode(img, PatternSpec())
@@ -573,3 +573,167 @@ def test_unroll_rows_holds_a_junction_at_every_pixel():
     np.testing.assert_array_equal(s.rel, np.broadcast_to(np.arange(80), (30, 80)))
     e = uw.relate_rows(lab, s)
     assert e.s.size == 29 and (e.offset == 0).all() and (e.n_agree == 80).all()
+
+
+
+# -- kernels.rim_mask (branch-free rows, flagged pixels found 8 at a time) against its old form ----
+from numba import njit  # noqa: E402
+
+
+@njit(nogil=True)
+def _abs_row_reference(column_rel, region, reg_off, v, out, weight):
+    # absolute columns of row v into out (W,) (0 where none) and weight (W,) (1 where one): a
+    # column of an indexed region; an unlabelled gap pixel inside a segment (region -1 with a
+    # column) takes its left neighbour's region
+    W = out.shape[0]
+    for u in range(W):
+        k = region[v, u]
+        if k < 0 and u > 0:
+            k = region[v, u - 1]
+        c = np.float32(np.nan)
+        if k >= 0:
+            c = column_rel[v, u] + reg_off[k]
+        if c == c:
+            out[u] = c
+            weight[u] = 1.0
+        else:
+            out[u] = 0.0
+            weight[u] = 0.0
+
+
+@njit(nogil=True)
+def _rim_mask_reference(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, rim_code, pull_out):
+    """``kernels.rim_mask`` as it was (per-pixel branches, in-place rows): the reference."""
+    H, W = column_rel.shape
+    want = pull_out.shape[0] == H and pull_out.shape[1] == W
+    n_ring = 2 * half_px + 2
+    ring = np.empty((n_ring, W), np.float32)   # absolute columns of rows v - half_px - 1 .. v + half_px
+    ring_w = np.empty((n_ring, W), np.float32)  # ... 1 where there is one
+    num = np.zeros(W, np.float64)
+    den = np.zeros(W, np.float64)
+    n_rim = 0
+    for v in range(min(half_px, H)):
+        _abs_row_reference(column_rel, region, reg_off, v, ring[v % n_ring], ring_w[v % n_ring])
+        for u in range(W):
+            num[u] += ring[v % n_ring, u]
+            den[u] += ring_w[v % n_ring, u]
+    for v in range(H):
+        va = v + half_px                      # row entering the window
+        vb = v - half_px - 1                  # row leaving it
+        if va < H:
+            _abs_row_reference(column_rel, region, reg_off, va, ring[va % n_ring], ring_w[va % n_ring])
+            if max_pull_px > 0:
+                rin = ring[va % n_ring]
+                win = ring_w[va % n_ring]
+                for u in range(W):                # branch-free running sums
+                    num[u] += rin[u]
+                    den[u] += win[u]
+        if vb >= 0 and max_pull_px > 0:
+            rout = ring[vb % n_ring]
+            wout = ring_w[vb % n_ring]
+            for u in range(W):
+                num[u] -= rout[u]
+                den[u] -= wout[u]
+        row = ring[v % n_ring]
+        roww = ring_w[v % n_ring]
+        for u in range(W):
+            if roww[u] == 0:
+                continue
+            c = row[u]
+            rim = False
+            if max_pull_px > 0:
+                dev = num[u] - c * den[u]          # den * pull, no division in the common case
+                if want:
+                    pull_out[v, u] = dev / den[u]
+                rim = abs(dev) > max_pull_px * den[u]
+            if not rim and end_px > 0:
+                # at the end of the row stretch and next to no signal (reason 1..3), both
+                # within end_px; the common case (a column on both sides) exits at once
+                if (u >= end_px and u + end_px < W and column_rel[v, u - 1] == column_rel[v, u - 1]
+                        and column_rel[v, u + 1] == column_rel[v, u + 1] and end_px == 1):
+                    pass
+                else:
+                    at_end = u - end_px < 0 or u + end_px >= W
+                    near_dark = False
+                    for x in range(max(u - end_px, 0), min(u + end_px, W - 1) + 1):
+                        cx = reason[v, x]
+                        if x != u and cx >= 1 and cx <= 3:
+                            near_dark = True
+                        if column_rel[v, x] != column_rel[v, x]:
+                            at_end = True
+                    rim = at_end and near_dark
+            if rim and reason[v, u] == 0:
+                reason[v, u] = rim_code
+                n_rim += 1
+    return n_rim
+
+
+@pytest.mark.parametrize("name", ["multi_move5", "hard_plane"])
+def test_rim_mask_equals_its_per_pixel_form(name, monkeypatch):
+    """kernels.rim_mask masks the pixels, returns the count and (when asked) the pull its old
+    per-pixel form gave, on the decoder's own calls for simulated frames and with other rule
+    parameters: no pull, wider end windows, a rim code the end rule reads (1..3: masking in row
+    order matters), a short window, the pull image requested."""
+    from gbscan import kernels
+    from gbscan.decode import decode
+
+    img, _ = _sim_frame(name)
+    calls = []
+    real = kernels.rim_mask
+
+    def spy(*args):
+        calls.append(tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args))
+        return real(*args)
+
+    monkeypatch.setattr(kernels, "rim_mask", spy)
+    decode(img, PatternSpec())
+    assert calls, "the decoder must call the rim rule"
+    n_masked = 0
+    for args in calls:
+        col, reg, off, reason, half, pull, end, code, _ = args
+        H, W = reason.shape
+        for half2, pull2, end2, code2, want in ((half, pull, end, code, False), (half, pull, end, code, True),
+                                                (half, 0.0, end, code, False), (half, pull, 0, code, False),
+                                                (half, pull, 2, code, True), (1, 0.3, 3, 2, False),
+                                                (0, pull, end, 1, False)):
+            r_new, r_ref = reason.copy(), reason.copy()
+            p_new = np.full((H, W) if want else (0, 0), -7.0, np.float32)
+            p_ref = p_new.copy()
+            n_new = real(col, reg, off, r_new, half2, pull2, end2, code2, p_new)
+            n_ref = _rim_mask_reference(col, reg, off, r_ref, half2, pull2, end2, code2, p_ref)
+            assert n_new == n_ref
+            np.testing.assert_array_equal(r_new, r_ref)
+            np.testing.assert_array_equal(p_new, p_ref)
+            n_masked += n_new
+    assert n_masked > 100  # the rules did mask pixels
+
+
+def test_rim_mask_equals_its_per_pixel_form_on_random_rows():
+    """The same comparison on random images: many regions (some not indexed), holes in the
+    columns, no-signal reasons everywhere, narrow images (the window leaves them), pulls large
+    and small."""
+    from gbscan import kernels
+
+    rng = np.random.default_rng(3)
+    n_masked = 0
+    for trial in range(40):
+        H, W = int(rng.integers(1, 30)), int(rng.integers(1, 50))
+        n_reg = int(rng.integers(1, 6))
+        region = np.repeat(rng.integers(-1, n_reg, (H, W // 3 + 1)), 3, axis=1)[:, :W].astype(np.int32)
+        col = (np.arange(W, dtype=np.float32)[None, :] * 1.3 + rng.normal(0, 1.5, (H, W))).astype(np.float32)
+        col[rng.random((H, W)) < 0.15] = np.nan
+        off = rng.integers(0, 50, n_reg).astype(np.float32) * 8
+        off[rng.random(n_reg) < 0.2] = np.nan
+        reason = rng.choice(np.array([0, 0, 0, 1, 2, 3, 5], np.uint8), size=(H, W))
+        for half, pull, end, code, want in ((2, 0.7, 2, 8, False), (1, 0.3, 1, 8, True), (0, 2.0, 3, 2, True),
+                                            (3, 0.0, 1, 1, False), (2, 0.5, 0, 8, False)):
+            r_new, r_ref = reason.copy(), reason.copy()
+            p_new = np.full((H, W) if want else (0, 0), -7.0, np.float32)
+            p_ref = p_new.copy()
+            n_new = kernels.rim_mask(col, region, off, r_new, half, pull, end, code, p_new)
+            n_ref = _rim_mask_reference(col, region, off, r_ref, half, pull, end, code, p_ref)
+            assert n_new == n_ref, (trial, half, pull, end, code)
+            np.testing.assert_array_equal(r_new, r_ref)
+            np.testing.assert_array_equal(p_new, p_ref)
+            n_masked += n_new
+    assert n_masked > 200

@@ -28,10 +28,23 @@ def add_arguments(p):
 
 
 # -- the decoder's flags: one set for every command that decodes (decode, scan, batch) ----------
+def blur_value(text: str):
+    """``--blur-px``: a sigma (px, float) or ``auto`` (returned as the string)."""
+    import argparse
+
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a sigma in camera px or 'auto', got {text!r}") from None
+
+
 #: flag -> (DecodeParams field(s) it sets, type, metavar, help)
 DECODE_FLAGS = {
-    "--blur-px": (("blur_sigma_along_px",), float, "SIGMA",
-                  "motion-blur sigma along the stripes, camera px (default 2)"),
+    "--blur-px": (("blur_sigma_along_px",), blur_value, "SIGMA|auto",
+                  "motion-blur sigma along the stripes, camera px, or auto (the default: from each frame's "
+                  "stripe signal-to-noise ratio, 1-3 px)"),
     "--balance-window-px": (("balance_window_px",), int, "N",
                             "colour-balance window, camera px (odd; 0 = whole image, the default; e.g. 31 "
                             "for faces)"),
@@ -78,7 +91,7 @@ def decode_params_from_args(args):
     for flag, (fields, _, _, _) in DECODE_FLAGS.items():
         value = getattr(args, _dest(flag), None)
         if value is not None:
-            kw.update(dict.fromkeys(fields, value))
+            kw.update(dict.fromkeys(fields, None if value == "auto" else value))
     return build_params(DecodeParams, kw, "decoder options") if kw else None
 
 
@@ -98,6 +111,7 @@ def pairs_to_kwargs(cls, pairs: list[str], option: str) -> dict:
     from ..errors import GBError
 
     defaults = cls()
+    optional_float = {f.name for f in dataclasses.fields(cls) if "float" in str(f.type)}
     settable = [f.name for f in dataclasses.fields(cls) if not dataclasses.is_dataclass(getattr(defaults, f.name))]
     kw = {}
     for item in pairs:
@@ -113,6 +127,8 @@ def pairs_to_kwargs(cls, pairs: list[str], option: str) -> dict:
                 if value.lower() not in ("1", "0", "true", "false", "yes", "no", "on", "off"):
                     raise ValueError
                 kw[name] = value.lower() in ("1", "true", "yes", "on")
+            elif current is None and name in optional_float:
+                kw[name] = float(value)
             elif isinstance(current, int) or (current is None and name.endswith("_px")):
                 kw[name] = int(value)
             elif isinstance(current, float):
@@ -155,6 +171,9 @@ def summary(sm) -> str:
                  f"{st.get('boundaries', 0)} stripe boundaries. ")
     if "why" in st:
         text += st["why"] + ". "
+    if "blur_sigma_along_px" in st:
+        text += (f"Blur along the stripes {st['blur_sigma_along_px']:g} px"
+                 + (f" (automatic: stripe SNR {st['snr']:.1f}). " if "snr" in st else ". "))
     total_ms = st.get("ms", {}).get("total")
     if total_ms is not None:
         text += f"Decoded in {total_ms:.1f} ms."
@@ -198,7 +217,11 @@ def run(args) -> int:
     sm = decode(image, pattern, params, keep_stages=bool(args.preview))
     if args.output:
         arrays = sm.arrays()
-        arrays["params"] = __import__("numpy").array(json.dumps(params.to_dict()))
+        used = params.to_dict()
+        if used["blur_sigma_along_px"] is None:   # the automatic blur: record the sigma it chose
+            used["blur_sigma_along_px"] = sm.stats.get("blur_sigma_along_px")
+            used["blur_auto_snr"] = sm.stats.get("snr")
+        arrays["params"] = __import__("numpy").array(json.dumps(used))
         save_npz(args.output, **arrays)
         print(f"wrote {args.output}")
     if args.preview:

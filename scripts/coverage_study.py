@@ -1,0 +1,155 @@
+"""Where do the lit pixels of a curved object go?  Scan simulated frames and print a breakdown.
+
+    python scripts/coverage_study.py [--scenes sphere,head] [--seeds 0] [--preset typical] [--out DIR]
+
+Scans each frame with the true calibration (``gbscan.scan.Scanner``, default decoder and cleaning)
+and prints, over the lit non-edge pixels (the accuracy targets' denominator):
+
+* kept %, depth RMS (mm) and the worst kept point's 3D error (mm);
+* kept % by camera and projector incidence of the true surface (``gbscan.sim.incidence_deg``):
+  stripes arrive dim and compressed at grazing projector incidence, edge-on at grazing camera
+  incidence, so this splits what the decoder could do better from what the geometry denies;
+* the lost pixels by the decoder's reason (``StripeMap.mask``; "ok" = decoded, then removed by
+  the cleaning), within 70 degrees of both and beyond.
+
+``--out DIR`` writes ``coverage_<scene>_s<seed>.png`` per frame: the lit non-edge pixels, kept in
+grey, lost ones coloured by reason (the decoder preview's colours), grazing ones (beyond 70
+degrees) darker, with a legend.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+GRAZING_DEG = 70.0
+BINS_DEG = (0, 40, 60, 70, 75, 80, 90)
+
+
+def study(name: str, seed: int, preset: str, out: Path | None) -> dict:
+    from gbscan import sim
+    from gbscan.calibfile import calibration_from_rig
+    from gbscan.decode import REASONS
+    from gbscan.pattern import PatternSpec, render_pattern
+    from gbscan.scan import Scanner
+
+    rig = sim.paper_rig()
+    spec = PatternSpec()
+    print(f"rendering {name} (seed {seed}, {preset}) ...", file=sys.stderr, flush=True)
+    r = sim.render(rig, getattr(sim.scenes, name)(), render_pattern(spec), sim.preset(preset), seed=seed)
+    s = Scanner(calibration_from_rig(rig, spec)).scan(r.image)
+    P = r.point.astype(np.float64)
+    good = r.lit & ~r.depth_edge & np.isfinite(P[..., 2])
+    kept = good & s.valid
+    dz = (s.xyz[..., 2] - P[..., 2])[kept]
+    err = np.linalg.norm(s.xyz[s.valid] - P[s.valid], axis=1)
+    cam, proj = sim.incidence_deg(rig, r)
+    facing = good & (cam < GRAZING_DEG) & (proj < GRAZING_DEG)
+    mask = s.stripemap.mask
+    res = {"scene": name, "seed": seed, "lit": int(good.sum()), "kept": float(kept.sum() / good.sum()),
+           "rms_mm": float(np.sqrt(np.mean(dz ** 2))), "worst_mm": float(np.nanmax(err)) if err.size else np.nan,
+           "facing_frac": float(facing.sum() / good.sum()), "facing_kept": float((kept & facing).sum() / facing.sum())}
+    print(f"\n## {name}, seed {seed}: kept {100 * res['kept']:.1f} % of {res['lit']} lit non-edge pixels, depth RMS "
+          f"{res['rms_mm']:.3f} mm, worst {res['worst_mm']:.2f} mm")
+    for label, ang in (("camera", cam), ("projector", proj)):
+        cells = []
+        for lo, hi in zip(BINS_DEG[:-1], BINS_DEG[1:]):
+            m = good & (ang >= lo) & (ang < hi)
+            if m.any():
+                cells.append(f"{lo}-{hi}: {100 * m.sum() / good.sum():4.1f} % of px, kept {100 * (m & kept).sum() / m.sum():5.1f} %")
+        print(f"   {label:9s} incidence  " + " | ".join(cells))
+    print(f"   within {GRAZING_DEG:.0f} deg of both: {100 * res['facing_frac']:.1f} % of the pixels, kept "
+          f"{100 * res['facing_kept']:.2f} %; beyond: kept "
+          f"{100 * (kept & ~facing).sum() / max((good & ~facing).sum(), 1):.1f} %")
+    for label, sel in (("within", facing), ("beyond", good & ~facing)):
+        lost = sel & ~s.valid
+        codes, counts = np.unique(mask[lost], return_counts=True)
+        parts = ", ".join(f"{'cleaned' if c == 0 else REASONS[int(c)]} {100 * n / good.sum():.2f}"
+                          for c, n in sorted(zip(codes, counts), key=lambda t: -t[1]))
+        print(f"   lost {label:6s} (% of lit non-edge): {parts if parts else 'none'}")
+    if out is not None:
+        res["picture"] = str(picture(out / f"coverage_{name}_s{seed}.png", r.image, good, kept, facing, mask))
+    return res
+
+
+def picture(path: Path, image: np.ndarray, good, kept, facing, mask) -> Path:
+    """Lit non-edge pixels: kept grey, lost coloured by reason; grazing ones at half brightness."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    from gbscan.decode import REASONS
+    from gbscan.io import atomic_path
+    from gbscan.preview.decode import REASON_RGB
+
+    rgb = (image * 0.25).astype(np.float64)
+    rgb[kept] = (150, 150, 150)
+    lost = good & ~kept
+    # the decoder preview's colours, but for the ones that vanish on this picture's grey / black
+    own = {"dark": (150, 90, 40), "low_contrast": (210, 210, 120), "saturated": (255, 0, 255)}
+    colours = {0: (255, 255, 0)}   # decoded, removed by the cleaning
+    colours.update({code: own.get(name, REASON_RGB.get(name, (255, 0, 255))) for code, name in REASONS.items()
+                    if code})
+    for code, col in colours.items():
+        rgb[lost & (mask == code)] = col
+    rgb[good & ~facing] *= 0.55
+    ys, xs = np.nonzero(good)
+    crop = rgb[max(ys.min() - 4, 0):ys.max() + 5, max(xs.min() - 4, 0):xs.max() + 5].astype(np.uint8)
+    fig, ax = plt.subplots(figsize=(7, 7 * crop.shape[0] / crop.shape[1] + 0.6), dpi=110)
+    ax.imshow(crop, interpolation="nearest")
+    ax.set_axis_off()
+    handles = [Patch(color=np.array((150, 150, 150)) / 255, label="kept")]
+    for code, col in colours.items():
+        n = int((lost & (mask == code)).sum())
+        if n:
+            handles.append(Patch(color=np.array(col) / 255,
+                                 label=f"{'cleaned' if code == 0 else REASONS[code]} ({n})"))
+    ax.legend(handles=handles, loc="lower right", fontsize=7, framealpha=0.8)
+    ax.set_title(f"lost lit non-edge pixels by reason (darker: beyond {GRAZING_DEG:.0f} deg incidence)", fontsize=9)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", default="sphere,head", help="gbscan.sim.scenes names (default sphere,head)")
+    ap.add_argument("--seeds", default="0", help="comma-separated render seeds (default 0)")
+    ap.add_argument("--preset", default="typical", choices=("clean", "typical", "hard"))
+    ap.add_argument("--out", help="folder for the coverage pictures (created)")
+    args = ap.parse_args(argv)
+    from gbscan import sim
+    from gbscan.errors import GBError
+    from gbscan.io import make_dir
+
+    try:
+        seeds = [int(x) for x in args.seeds.split(",") if x.strip()]
+    except ValueError:
+        ap.error(f"--seeds: expected comma-separated integers, got {args.seeds!r}")
+    names = [x.strip() for x in args.scenes.split(",") if x.strip()]
+    for n in names:
+        if not callable(getattr(sim.scenes, n, None)):
+            ap.error(f"--scenes: no simulated scene {n!r} in gbscan.sim.scenes")
+    out = None
+    if args.out:
+        try:
+            out = make_dir(args.out, "--out")
+        except GBError as e:
+            ap.error(str(e))
+    print(f"# coverage study, paper rig, preset {args.preset}, default decoder and cleaning")
+    for name in names:
+        for seed in seeds:
+            res = study(name, seed, args.preset, out)
+            if "picture" in res:
+                print(f"   wrote {res['picture']}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
