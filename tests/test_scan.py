@@ -364,6 +364,13 @@ def test_decoder_and_cleaning_flags_are_one_set_across_commands():
     assert scan_cmd.clean_params_from_args(p.parse_args(heads[batch_cmd]), none_if_default=True) is None
     with pytest.raises(GBError, match="--decode-param"):
         decode_cmd.decode_params_from_args(p.parse_args(heads[batch_cmd] + ["--decode-param", "unwrap=1"]))
+    # the blur: a sigma or "auto" (the default, None), also through --decode-param as a float
+    for extra, sigma in ((["--blur-px", "auto", "--gamma", "1.0"], None), (["--blur-px", "1.5"], 1.5),
+                         (["--decode-param", "blur_sigma_along_px=1.25"], 1.25),
+                         (["--decode-param", "blur_sigma_along_px=none", "--gamma", "1.0"], None)):
+        assert decode_cmd.decode_params_from_args(p.parse_args(heads[batch_cmd] + extra)).blur_sigma_along_px == sigma
+    with pytest.raises(SystemExit):
+        p.parse_args(heads[batch_cmd] + ["--blur-px", "fast"])
 
 
 # -- no flying pixels at depth edges (issue 5) ---------------------------------------------------
