@@ -65,9 +65,11 @@ class DecodeParams:
     blur_auto_gain_px, blur_auto_min_px, blur_auto_max_px : the automatic sigma is
         ``clip(blur_auto_gain_px / SNR, min, max)`` in steps of 0.25 px.  Measured on the
         simulator's 35-scene sweep (``scripts/sweep_decode.py``): the typical preset (SNR ~20-40)
-        decodes best at sigma ~1 (sphere/head scans: depth RMS 0.143/0.272 -> 0.117/0.239 mm, more
-        pixels kept, fewer wrong ones on depth edges), the hard preset (SNR ~4-8) at 2.5-3 (plane
-        67 -> 74 % reported), against the fixed 2 px used before.
+        decodes best at sigma ~1 (sphere/head scans: depth RMS 0.143/0.272 -> 0.116/0.234 mm, 2-2.5
+        points more kept; sweep wrong pixels 14 -> 0 off depth edges, 400 -> 202 on them), the hard
+        preset (SNR ~4-8) at 2.5-3 (plane 67 -> 72 %, step 80 -> 83 % reported), against the fixed
+        2 px used before.  The index is not equally robust at every sigma in between: see
+        ``scripts/sweep_decode.py --blur-grid``.
     stripe_angle_deg : stripe direction in the image, 0 = vertical (fast separable path).
     balance_window_px : colour-balance window (odd int); 0/None = whole image (uniform objects).
     threshold : "local" (d against its local mean) or "global" (d against 0).

@@ -884,15 +884,15 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
                 vc[good], k[good], vl[good], vv[good], comp, cr, col_abs, un.region, accept_c[few_rows],
                 accept_k[few_rows], int(params.link_slope_rows), int(params.link_slope_half_px),
                 float(params.link_slope_tol), float(params.link_slope_z), return_measured=True)
+            # the guard cannot run: the contact is the component's only tie, and nothing tells a
+            # continuing surface from a lined-up one
+            blind = np.zeros(accept_c.size, bool)
             if params.link_slope_unmeasured:
-                # the guard cannot run: the contact is the component's only tie, and nothing
-                # tells a continuing surface from a lined-up one
-                blind = np.zeros(accept_c.size, bool)
                 blind[few_rows] = measured < _SLOPE_MIN_VOTES
-                stats["refused_unmeasured"] = int((blind & ~jumps).sum())
-                jumps |= blind
-            stats["refused_slope"] = int(jumps.sum()) - stats.get("refused_unmeasured", 0)
-            accept_c, accept_k, accept_n = accept_c[~jumps], accept_k[~jumps], accept_n[~jumps]
+                blind &= ~jumps
+            stats["refused_slope"], stats["refused_unmeasured"] = int(jumps.sum()), int(blind.sum())
+            keep = ~(jumps | blind)
+            accept_c, accept_k, accept_n = accept_c[keep], accept_k[keep], accept_n[keep]
     stats["refused_votes"] = (stats["components_tried"] - int(accept_c.size) - stats["refused_slope"]
                               - stats["refused_unmeasured"])
     # the markers at the linked offset must agree with the component's colours
