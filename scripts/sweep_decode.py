@@ -109,6 +109,41 @@ def wrong_regions(sm, truth, depth_edge, stripe_px: int) -> tuple[dict, list[dic
     return counts, rows
 
 
+def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = True) -> dict:
+    """Decode every scene with ``params``; per-scene lines (and wrong regions) when ``show``.
+    Returns the totals: lit non-edge pixels, reported, wrong, wrong_edge, bad_scenes, scenes."""
+    from gbscan.decode import decode
+    from gbscan.pattern import PatternSpec
+
+    spec = PatternSpec()
+    out = print if show else (lambda *a, **k: None)
+    tot = {"lit": 0, "reported": 0, "wrong": 0, "wrong_edge": 0, "bad_scenes": 0, "scenes": len(scenes)}
+    out(f"{'scene':26s} {'preset':8s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'ms':>6s}")
+    for k, (name, preset, seed, ss, factory) in enumerate(scenes):
+        t0 = time.perf_counter()
+        image, truth, depth_edge, lit = load_or_render(name, preset, seed, ss, factory, cache)
+        t1 = time.perf_counter()
+        sm = decode(image, spec, params, keep_stages=True)
+        t2 = time.perf_counter()
+        print(f"[{k + 1}/{len(scenes)}] {name}: render/load {t1 - t0:.1f} s, decode {t2 - t1:.2f} s",
+              file=sys.stderr, flush=True)
+        cand = lit & ~depth_edge
+        rep = int((sm.valid & cand).sum())
+        counts, rows = wrong_regions(sm, truth, depth_edge, spec.stripe_px)
+        tot["lit"] += int(cand.sum())
+        tot["reported"] += rep
+        tot["wrong"] += counts["wrong"]
+        tot["wrong_edge"] += counts["wrong_edge"]
+        tot["bad_scenes"] += int(counts["wrong"] + counts["wrong_edge"] > 0)
+        out(f"{name:26s} {preset:8s} {100.0 * rep / max(cand.sum(), 1):9.2f} {counts['wrong']:6d} "
+            f"{counts['wrong_edge']:10d} {(t2 - t1) * 1e3:6.0f}", flush=True)
+        for d in rows:
+            if d["wrong_px"] == d["edge_px"] and not edges:
+                continue  # depth-edge pixels only (they mix two surfaces): see --edges
+            out("    " + " ".join(f"{a}={b}" for a, b in d.items()), flush=True)
+    return tot
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cache", help="folder to keep the renders in between runs (created)")
@@ -123,43 +158,23 @@ def main(argv=None) -> int:
                     help="run the whole sweep once per fixed blur sigma (px) and print one total line each "
                          "(the automatic blur picks 1-3 px by the frame's SNR: the index must hold at all)")
     args = ap.parse_args(argv)
+    sigmas = []
     if args.blur_grid:
         try:
             sigmas = [float(x) for x in args.blur_grid.split(",") if x.strip()]
         except ValueError:
             ap.error(f"--blur-grid: expected comma-separated sigmas in px, got {args.blur_grid!r}")
-        base = [a for a in (argv if argv is not None else sys.argv[1:])]
-        keep, skip = [], False
-        for a in base:  # the same options without --blur-grid
-            if skip:
-                skip = False
-                continue
-            if a == "--blur-grid":
-                skip = True
-                continue
-            if not a.startswith("--blur-grid="):
-                keep.append(a)
-        print(f"{'blur_px':>7s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'bad scenes':>10s}")
-        for sg in sigmas:
-            import contextlib
-            import io
-            buf = io.StringIO()
-            with contextlib.redirect_stdout(buf):
-                main(keep + ["--decode", f"blur_sigma_along_px={sg}"])
-            tot = buf.getvalue().strip().splitlines()[-1].split()
-            print(f"{sg:7.2f} {tot[1]:>9s} {tot[2]:>6s} {tot[3]:>10s} {tot[-1]:>10s}", flush=True)
-        return 0
 
-    from gbscan.decode import DecodeParams, decode
+    from dataclasses import replace
+
+    from gbscan.decode import DecodeParams
     from gbscan.errors import GBError
     from gbscan.io import make_dir
     from gbscan.unwrap import UnwrapParams
-    from gbscan.pattern import PatternSpec
 
     cache = Path(args.cache) if args.cache else None
     if cache is not None:
         make_dir(cache, "--cache")
-    spec = PatternSpec()
     over = {}
     for item in args.unwrap:
         name, _, val = item.partition("=")
@@ -178,32 +193,16 @@ def main(argv=None) -> int:
         dover[name] = float(val) if optional else type(cur)(float(val))
     params = DecodeParams(unwrap=UnwrapParams(**over), **dover)
     scenes = [s for s in scene_list(args.quick) if not args.only or args.only in s[0]]
-    tot = {"lit": 0, "reported": 0, "wrong": 0, "wrong_edge": 0, "bad_scenes": 0}
-    print(f"{'scene':26s} {'preset':8s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'ms':>6s}")
-    for k, (name, preset, seed, ss, factory) in enumerate(scenes):
-        t0 = time.perf_counter()
-        image, truth, depth_edge, lit = load_or_render(name, preset, seed, ss, factory, cache)
-        t1 = time.perf_counter()
-        sm = decode(image, spec, params, keep_stages=True)
-        t2 = time.perf_counter()
-        print(f"[{k + 1}/{len(scenes)}] {name}: render/load {t1 - t0:.1f} s, decode {t2 - t1:.2f} s",
-              file=sys.stderr, flush=True)
-        cand = lit & ~depth_edge
-        rep = int((sm.valid & cand).sum())
-        counts, rows = wrong_regions(sm, truth, depth_edge, spec.stripe_px)
-        tot["lit"] += int(cand.sum())
-        tot["reported"] += rep
-        tot["wrong"] += counts["wrong"]
-        tot["wrong_edge"] += counts["wrong_edge"]
-        tot["bad_scenes"] += int(counts["wrong"] + counts["wrong_edge"] > 0)
-        print(f"{name:26s} {preset:8s} {100.0 * rep / max(cand.sum(), 1):9.2f} {counts['wrong']:6d} "
-              f"{counts['wrong_edge']:10d} {(t2 - t1) * 1e3:6.0f}", flush=True)
-        for d in rows:
-            if d["wrong_px"] == d["edge_px"] and not args.edges:
-                continue  # depth-edge pixels only (they mix two surfaces): see --edges
-            print("    " + " ".join(f"{a}={b}" for a, b in d.items()), flush=True)
+    if sigmas:
+        print(f"{'blur_px':>7s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'bad scenes':>10s}")
+        for sg in sigmas:
+            tot = sweep(replace(params, blur_sigma_along_px=sg), scenes, cache, show=False)
+            print(f"{sg:7.2f} {100.0 * tot['reported'] / max(tot['lit'], 1):9.2f} {tot['wrong']:6d} "
+                  f"{tot['wrong_edge']:10d} {tot['bad_scenes']:>7d}/{tot['scenes']}", flush=True)
+        return 0
+    tot = sweep(params, scenes, cache, args.edges)
     print(f"{'TOTAL':26s} {'':8s} {100.0 * tot['reported'] / max(tot['lit'], 1):9.2f} {tot['wrong']:6d} "
-          f"{tot['wrong_edge']:10d}   scenes with wrong pixels: {tot['bad_scenes']}/{len(scenes)}")
+          f"{tot['wrong_edge']:10d}   scenes with wrong pixels: {tot['bad_scenes']}/{tot['scenes']}")
     return 0
 
 
