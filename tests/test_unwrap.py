@@ -45,6 +45,35 @@ def test_unroll_rows_spikes_gaps_and_parity_breaks():
     assert s.n == 2
 
 
+
+def test_unroll_rows_absorbs_mixed_pixels_beside_a_wide_marker():
+    """A marker replaces one stripe, so its flanks share one colour (``B C B``).  Where stripes are
+    wide, the pixels mixing a flank and the marker can come out as the other colour: ``B G C B``
+    reads as a parity contradiction.  The short run is absorbed into its flank (one segment, the
+    indices of the stripes after the marker unchanged); ``marker_flank_px=0`` cuts the row there."""
+    lab = row_from_stripes([B, G, C, B, G], [7, 2, 7, 7, 7])[None]
+    s = uw.unroll_rows(lab, marker_flank_px=2)
+    assert s.n == 1
+    assert s.rel[0, 0] == s.rel[0, 8] == 1 and s.rel[0, 9] == 2 and s.rel[0, 16] == 3 and s.rel[0, 23] == 4
+    # the flank|marker junction spans the absorbed pixels, so its sub-pixel search covers them
+    assert s.j_ua[0] == 8 and s.j_ub[0] == 9 and s.j_la[0] == B and s.j_lb[0] == C
+    assert uw.unroll_rows(lab, marker_flank_px=0).n == 2
+    # mirrored (a short run after the marker), and across a 1-px gap on each side
+    lab = row_from_stripes([G, C, B, G], [7, 7, 1, 7])[None]
+    s = uw.unroll_rows(lab, marker_flank_px=2)
+    assert s.n == 1 and s.rel[0, 0] == 0 and s.rel[0, 7] == 1 and s.rel[0, 14] == s.rel[0, 21] == 2
+    lab = row_from_stripes([B, G, N, C, N, B], [7, 2, 1, 7, 1, 7])[None]
+    s = uw.unroll_rows(lab, max_gap_px=1, marker_flank_px=2)
+    assert s.n == 1 and s.rel[0, 0] == 1 and s.rel[0, 10] == 2 and s.rel[0, 20] == 3
+    # narrow stripes: the short run may be a real stripe whose twin across the marker was lost;
+    # a marker of 4 px (<= 2 * marker_flank_px) is not treated as seen wide: the row is cut
+    assert uw.unroll_rows(row_from_stripes([B, G, C, B], [7, 2, 4, 7])[None], marker_flank_px=2).n == 2
+    # the legitimate B G C G B (narrow real stripes beside the marker) keeps its five stripes
+    s = uw.unroll_rows(row_from_stripes([B, G, C, G, B], [6, 2, 7, 2, 6])[None], marker_flank_px=2)
+    assert s.n == 1 and [int(s.rel[0, u]) for u in (0, 6, 8, 15, 17)] == [1, 2, 3, 4, 5]
+    with pytest.raises(GBError, match="marker_flank_px"):
+        uw.UnwrapParams(marker_flank_px=-1)
+
 def test_seven_steps_give_one_consistent_region():
     spec = PatternSpec()
     lab = stripe_image(spec, 10, 40, rows=20)
