@@ -520,6 +520,37 @@ def subpixel_junctions(gn, bn, j_row, j_ua, j_ub, j_la, j_lb, seg_u0, seg_u1, j_
 
 
 @njit(cache=True, nogil=True)
+def fit_junctions(j_x, seg_j0, seg_j1, coef):
+    """Boundary positions refined by a local polynomial fit along each segment.
+
+    ``j_x`` (n_j,) float64 sub-pixel positions (NaN: not located); ``coef`` (2 h + 1,) float64 the
+    weights that evaluate, at the centre, the least-squares polynomial through ``2 h + 1``
+    equally spaced samples (Savitzky-Golay).  Consecutive junctions of a segment are consecutive
+    stripe boundaries, so position against boundary index is a smooth curve on one surface; the
+    fit averages the locator's noise over ``2 h + 1`` boundaries.  A junction keeps its own
+    position where its window leaves the segment or holds an unlocated boundary.  Returns a new
+    (n_j,) float64 array.
+    """
+    out = j_x.copy()
+    h = (coef.shape[0] - 1) // 2
+    for s in range(seg_j0.shape[0]):
+        a = seg_j0[s]
+        b = seg_j1[s]
+        for j in range(a + h, b - h):
+            acc = 0.0
+            ok = True
+            for k in range(-h, h + 1):
+                x = j_x[j + k]
+                if np.isnan(x):
+                    ok = False
+                    break
+                acc += coef[k + h] * x
+            if ok:
+                out[j] = acc
+    return out
+
+
+@njit(cache=True, nogil=True)
 def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j_x, j_bnd, stripe_px,
                         extrapolate):
     """Continuous projector column of every pixel of the accepted segments.
@@ -3315,52 +3346,63 @@ def drop_orphans(mask, column, stripe, conf, ok_code, code):
 
 
 @njit(cache=True, nogil=True)
-def bridge_cuts(j_x, seg_j0, seg_j1, ratio):
+def bridge_cuts(j_x, seg_j0, seg_j1, ratio, pre):
     """Junctions of unlocated boundaries whose bridge does not fit the spacing on both sides.
 
     ``j_x`` (n_j,) float64 sub-pixel boundary positions (NaN: not located), ``seg_j0, seg_j1``
-    each segment's junction range.  A run of unlocated junctions ``a..b`` inside a segment is
-    bridged by the located boundaries ``a - 1`` and ``b + 1``: its mean spacing
-    ``(x[b+1] - x[a-1]) / (b - a + 2)`` must lie within ``[1/ratio, ratio]`` of the located spacing
-    just left of it and of the one just right of it (those measurable; at least one).  Otherwise
-    (no bridge: the run ends the segment, nothing to compare with, or a misfit) every junction of
-    the run is cut.  Returns (n_j,) uint8.
+    each segment's junction range, ``pre`` (n_j,) uint8 junctions cut already (by
+    :func:`spacing_cuts`: they end a piece, as :func:`apply_cuts` will make them).  Inside each
+    piece, a run of unlocated junctions ``a..b`` is bridged by the located boundaries ``a - 1``
+    and ``b + 1``: its mean spacing ``(x[b+1] - x[a-1]) / (b - a + 2)`` must lie within
+    ``[1/ratio, ratio]`` of the located spacing just left of it and of the one just right of it
+    (those measurable; at least one).  Otherwise (no bridge: the run ends the piece, nothing to
+    compare with, or a misfit) every junction of the run is cut.  Returns (n_j,) uint8 (the new
+    cuts only).
     """
     nj = j_x.shape[0]
     cut = np.zeros(nj, np.uint8)
     for s in range(seg_j0.shape[0]):
-        j0 = seg_j0[s]
-        j1 = seg_j1[s]
-        j = j0
-        while j < j1:
-            if not np.isnan(j_x[j]):
-                j += 1
-                continue
-            a = j
-            while j < j1 and np.isnan(j_x[j]):
-                j += 1
-            b = j - 1
-            ja = a - 1
-            jb = b + 1
-            ok = ja >= j0 and jb < j1
-            if ok:
-                sp = (j_x[jb] - j_x[ja]) / (jb - ja)
-                n_nb = 0
-                if sp <= 0.0:
-                    ok = False
-                if ok and ja - 1 >= j0 and not np.isnan(j_x[ja - 1]):
-                    q = j_x[ja] - j_x[ja - 1]
-                    n_nb += 1
-                    if q <= 0.0 or sp > ratio * q or sp * ratio < q:
-                        ok = False
-                if ok and jb + 1 < j1 and not np.isnan(j_x[jb + 1]):
-                    q = j_x[jb + 1] - j_x[jb]
-                    n_nb += 1
-                    if q <= 0.0 or sp > ratio * q or sp * ratio < q:
-                        ok = False
-                if n_nb == 0:
-                    ok = False
-            if not ok:
-                for k in range(a, b + 1):
-                    cut[k] = 1
+        p0 = seg_j0[s]
+        while p0 < seg_j1[s]:
+            p1 = p0  # the piece [p0, p1) ends at the next junction cut already
+            while p1 < seg_j1[s] and pre[p1] == 0:
+                p1 += 1
+            _bridge_piece(j_x, p0, p1, ratio, cut)
+            p0 = p1 + 1
     return cut
+
+
+@njit(cache=True, nogil=True)
+def _bridge_piece(j_x, j0, j1, ratio, cut):
+    j = j0
+    while j < j1:
+        if not np.isnan(j_x[j]):
+            j += 1
+            continue
+        a = j
+        while j < j1 and np.isnan(j_x[j]):
+            j += 1
+        b = j - 1
+        ja = a - 1
+        jb = b + 1
+        ok = ja >= j0 and jb < j1
+        if ok:
+            sp = (j_x[jb] - j_x[ja]) / (jb - ja)
+            n_nb = 0
+            if sp <= 0.0:
+                ok = False
+            if ok and ja - 1 >= j0 and not np.isnan(j_x[ja - 1]):
+                q = j_x[ja] - j_x[ja - 1]
+                n_nb += 1
+                if q <= 0.0 or sp > ratio * q or sp * ratio < q:
+                    ok = False
+            if ok and jb + 1 < j1 and not np.isnan(j_x[jb + 1]):
+                q = j_x[jb + 1] - j_x[jb]
+                n_nb += 1
+                if q <= 0.0 or sp > ratio * q or sp * ratio < q:
+                    ok = False
+            if n_nb == 0:
+                ok = False
+        if not ok:
+            for k in range(a, b + 1):
+                cut[k] = 1

@@ -83,9 +83,12 @@ class UnwrapParams:
         below it (multi-object at 760 mm, 229 px 20 stripes off), at 2.5-3 px a strip of wall into
         a panel (moving frame 5, 114 px 28 stripes off).  0.3 % of the boundaries of
         ``scripts/sweep_decode.py`` are unlocated.  The sweep's wrong non-edge pixels at blur
-        1.75 / 2.5 / 2.75 / 3 px: 237 / 144 / 62 / 70 -> 8 / 31 / 3 / 11; 1.1-1.25 fix the same
-        pixels, 1.35 misses the sphere patch (its bridge is 1.32 x the spacing beside it); the
-        automatic blur's coverage 81.49 -> 81.83 % (welds no longer split regions' markers).
+        1.75 / 2.5 / 2.75 px: 237 / 144 / 62 -> 8 / 31 / 3; 1.1-1.25 fix the same pixels, 1.35
+        misses the sphere patch (its bridge is 1.32 x the spacing beside it).  Coverage rises
+        (the welds no longer split regions' markers): automatic blur 81.49 -> 81.80 % with
+        ``link_hang_rows`` and ``link_slope_z_near`` (moving frame 0 +7.2 points, frame 9 and
+        multi-object at 700 mm +1.3-1.5); noisy frames, with many unlocated boundaries, lose a
+        little (hard presets -0.1 to -0.4 points).
     spike_px : runs of at most this many px flanked by one colour are noise (0: keep all).
     marker_flank_px : a run of at most this many px between a cyan marker and a longer run of the
         other colour, where the marker's flanks then disagree (``X Y C X``), is the mixed pixels of
@@ -158,6 +161,23 @@ class UnwrapParams:
         (35 scenes) it takes the wrong non-edge pixels 1972 -> 609 (moving multi-object frames 5
         and 6: 768 -> 158, 780 -> 27), coverage 82.06 -> 82.03 % (step_hard 84.40 -> 84.36 %, no
         other scene changes; the test scenes are unchanged).
+    link_slope_z_near : the z-score the *near* test needs (the deep one keeps ``link_slope_z``):
+        the near slopes are those of the surface right at the contact, the deep ones may sit on
+        another surface past a welded strip.  With the boundary fit (``DecodeParams.
+        boundary_fit_half`` = 3) moving frame 5 at blur 3 px had a panel (799 px, one marker)
+        linked 8 stripes off through one row, its slope 11 % below the wall's (3 x the
+        tolerance) at z = 12.3 (the fitted boundaries spread the votes): 15 -> 10 takes the
+        sweep's wrong non-edge pixels at 3 px 353 -> 1; one z of 10 for both tests would also
+        refuse a correct 1500-px component of that frame at 2 px (its deep ratio 0.11).
+    link_hang_rows : a component of more than this many rows (and at most ``link_reach_rows``)
+        whose agreeing votes all come from one row passes the slope test too, the rule of
+        ``link_slope_unmeasured`` included (0: only tall components do).  It hangs from one
+        contact row, the shape of a weld where two surfaces' stripes line up: at the foot of the
+        moving frames' panels, marker-free fragments of 6-7 rows (20-80 px) welded to the
+        surface below by one lined-up row were linked 6-8 stripes off through it (frames 1 and 7,
+        blur 1.75-3 px).  Components held by votes from two sides are left alone: lowering
+        ``link_reach_rows`` to 5 instead fixes the same pixels but refuses sandwiched 6-row
+        strips of the face (head at 650 mm, seed 0: 85.0 -> 83.2 % kept).
     link_slope_unmeasured : such a component is not linked either when fewer than
         ``_SLOPE_MIN_VOTES`` of its votes have a measurable slope on both sides (the reported
         surface is a strip too thin to measure, or the component is): the test that guards the
@@ -194,8 +214,10 @@ class UnwrapParams:
     min_believable_junctions: int = 2
     link_rows: int = 1
     link_reach_rows: int = 8
+    link_hang_rows: int = 5
     link_slope_tol: float = 0.04
     link_slope_z: float = 15.0
+    link_slope_z_near: float = 10.0
     link_slope_rows: int = 4
     link_slope_half_px: int = 8
     link_slope_below_rows: int = 3
@@ -213,15 +235,19 @@ class UnwrapParams:
                           f"{self.max_gap_px}, {self.spike_px}, {self.marker_flank_px}")
         if int(self.link_votes) < 0 or int(self.link_lines) < 1 or int(self.link_gap_px) < 0:
             raise GBError("UnwrapParams.link_votes and link_gap_px must be >= 0, link_lines >= 1")
+        if int(self.link_hang_rows) < 0:
+            raise GBError(f"UnwrapParams.link_hang_rows must be >= 0 (0 disables), got {self.link_hang_rows}")
         if int(self.min_believable_junctions) < 0 or int(self.link_rows) < 1 or int(self.link_reach_rows) < 0:
             raise GBError(f"UnwrapParams.min_believable_junctions and link_reach_rows must be >= 0, link_rows >= 1, "
                           f"got {self.min_believable_junctions}, {self.link_reach_rows}, {self.link_rows}")
         if float(self.link_slope_tol) < 0 or float(self.link_slope_z) < 0 or int(self.link_slope_rows) < 1 \
-                or int(self.link_slope_half_px) < 1 or int(self.link_slope_below_rows) < 0:
-            raise GBError(f"UnwrapParams.link_slope_tol and link_slope_z must be >= 0 (tol 0 disables the slope test), "
-                          f"link_slope_rows and link_slope_half_px >= 1, link_slope_below_rows >= 0, got "
-                          f"{self.link_slope_tol}, {self.link_slope_z}, {self.link_slope_rows}, "
-                          f"{self.link_slope_half_px}, {self.link_slope_below_rows}")
+                or int(self.link_slope_half_px) < 1 or int(self.link_slope_below_rows) < 0 \
+                or float(self.link_slope_z_near) < 0:
+            raise GBError(f"UnwrapParams.link_slope_tol, link_slope_z and link_slope_z_near must be >= 0 (tol 0 "
+                          f"disables the slope test), link_slope_rows and link_slope_half_px >= 1, "
+                          f"link_slope_below_rows >= 0, got {self.link_slope_tol}, {self.link_slope_z}, "
+                          f"{self.link_slope_z_near}, {self.link_slope_rows}, {self.link_slope_half_px}, "
+                          f"{self.link_slope_below_rows}")
         if not (float(self.bridge_ratio) == 0.0 or float(self.bridge_ratio) > 1.0):
             raise GBError(f"UnwrapParams.bridge_ratio must be > 1 (a spacing factor) or 0 (disabled), got "
                           f"{self.bridge_ratio}")
@@ -506,14 +532,18 @@ def cut_depth_edges(segs: Segments, ratio: float) -> Segments:
     there (another surface, another distance and slant).  Cutting there keeps each segment on one
     surface; the pieces are related to their neighbour rows like any segment.
     """
+    cut = _spacing_cut_mask(segs, ratio)
+    return segs if cut is None else _apply_cuts(segs, cut)
+
+
+def _spacing_cut_mask(segs: Segments, ratio: float):
+    """(n_junctions,) uint8 junctions :func:`cut_depth_edges` cuts, None when it cuts none."""
     from . import kernels
 
     if segs.j_x is None or ratio <= 0 or segs.j_seg.size == 0:
-        return segs
+        return None
     cut = kernels.spacing_cuts(segs.j_x.astype(np.float64), segs.j0, segs.j1, float(ratio))
-    if not cut.any():
-        return segs
-    return _apply_cuts(segs, cut)
+    return cut if cut.any() else None
 
 
 def cut_unlocated(segs: Segments, ratio: float) -> Segments:
@@ -529,14 +559,21 @@ def cut_unlocated(segs: Segments, ratio: float) -> Segments:
     ``ratio``, :func:`gbscan.kernels.bridge_cuts`); otherwise the segment is cut at each of them
     and each side is related to its neighbour rows on its own.
     """
+    cut = _unlocated_cut_mask(segs, ratio)
+    return segs if cut is None else _apply_cuts(segs, cut)
+
+
+def _unlocated_cut_mask(segs: Segments, ratio: float, pre=None):
+    """(n_junctions,) uint8 junctions :func:`cut_unlocated` cuts (after the junctions ``pre`` are
+    cut, e.g. by :func:`cut_depth_edges`: they end a piece; not included), None when none."""
     from . import kernels
 
     if segs.j_x is None or ratio <= 0 or segs.j_seg.size == 0 or not np.isnan(segs.j_x).any():
-        return segs
-    cut = kernels.bridge_cuts(segs.j_x.astype(np.float64), segs.j0, segs.j1, float(ratio))
-    if not cut.any():
-        return segs
-    return _apply_cuts(segs, cut)
+        return None
+    if pre is None:
+        pre = np.zeros(segs.j_seg.size, np.uint8)
+    cut = kernels.bridge_cuts(segs.j_x.astype(np.float64), segs.j0, segs.j1, float(ratio), pre)
+    return cut if cut.any() else None
 
 
 def attach_doubtful(segs: Segments, edges: Edges, believable: np.ndarray, state, p: UnwrapParams):
@@ -585,11 +622,15 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
     segs1 = unroll_rows(labels, p.max_gap_px, p.spike_px, p.marker_flank_px)  # 1
     if locate is not None:
         segs1.j_x = np.asarray(locate(segs1), dtype=np.float32)
-        n_before = segs1.n
-        segs1 = cut_depth_edges(segs1, p.spacing_ratio)
-        n_depth_cuts = segs1.n - n_before
-        segs1 = cut_unlocated(segs1, p.bridge_ratio)
-        n_unlocated_cuts = segs1.n - n_before - n_depth_cuts
+        # cut_depth_edges, then cut_unlocated on its pieces: both masks, one split (_apply_cuts
+        # copies every table: ~1 ms a frame)
+        c_depth = _spacing_cut_mask(segs1, p.spacing_ratio)
+        c_unloc = _unlocated_cut_mask(segs1, p.bridge_ratio, c_depth)
+        n_depth_cuts = int(c_depth.sum()) if c_depth is not None else 0
+        n_unlocated_cuts = int(c_unloc.sum()) if c_unloc is not None else 0
+        if c_depth is not None or c_unloc is not None:
+            cut = c_depth if c_unloc is None else (c_unloc if c_depth is None else c_depth | c_unloc)
+            segs1 = _apply_cuts(segs1, cut)
     else:
         n_depth_cuts = n_unlocated_cuts = 0
     edges1 = relate_rows(labels, segs1)                                   # 2
@@ -866,10 +907,14 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
     columns agree within ``link_tol_px`` on one offset, they are at least ``link_agree_frac`` of
     all its votes (across a depth edge the continuation fails: votes scatter or sit between
     offsets), the offset keeps its stripes inside the pattern, and its colours agree with the
-    markers there (at most ``link_marker_frac`` contradicting pixels).  Otherwise the component
-    stays dropped: a guess is never made.  Where two surfaces meet with their stripes lined up
-    (an even shift) and no marker nearby, continuity cannot tell them apart: that is the residual
-    risk, the same as the unwrapping's own vertical links (``link_rows`` narrows it, at a cost).
+    markers there (at most ``link_marker_frac`` contradicting pixels).  A component hanging from
+    a contact of few rows (taller than ``link_reach_rows`` with votes from fewer than
+    ``link_slope_below_rows`` rows, or taller than ``link_hang_rows`` with votes from one row)
+    must also show the column's slope along the row continuing, measurably (:func:`_slope_jumps`).
+    Otherwise the component stays dropped: a guess is never made. Where two surfaces meet with their
+    stripes lined up (an even shift) and no marker nearby, continuity cannot tell them apart: that
+    is the residual risk, the same as the unwrapping's own vertical links (``link_rows`` narrows it,
+    at a cost).
     """
     from . import kernels
 
@@ -935,6 +980,10 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
         accept_c, accept_k, accept_n = pc[b][ok], pk[b][ok], cnt[b][ok]
         few_rows = (tall & (n_rows[b] < params.link_slope_below_rows))[ok] if params.link_slope_below_rows > 0 \
             else np.ones(accept_c.size, bool)
+        if params.link_hang_rows > 0:
+            # a shorter component hanging from one row of votes: the contact of a lined-up weld
+            height = r_hi[pc[b]] - r_lo[pc[b]] + 1
+            few_rows |= (~tall & (height > params.link_hang_rows) & (n_rows[b] == 1))[ok]
         if params.link_slope_tol > 0 and few_rows.any():
             # across a horizontal depth edge the columns may continue (an even stripe shift) but
             # the column's slope along the row does not (another distance)
@@ -942,7 +991,8 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
             jumps[few_rows], measured = _slope_jumps(
                 vc[good], k[good], vl[good], vv[good], comp, cr, col_abs, un.region, accept_c[few_rows],
                 accept_k[few_rows], int(params.link_slope_rows), int(params.link_slope_half_px),
-                float(params.link_slope_tol), float(params.link_slope_z), return_measured=True)
+                float(params.link_slope_tol), float(params.link_slope_z), return_measured=True,
+                z_near=float(params.link_slope_z_near))
             # the guard cannot run: the contact is the component's only tie, and nothing tells a
             # continuing surface from a lined-up one
             blind = np.zeros(accept_c.size, bool)
@@ -1000,7 +1050,7 @@ _SLOPE_NOISE_FLOOR = 0.005  # smallest spread (log slope ratio) assumed of one v
 
 
 def _slope_jumps(vc, vk, vl, vv, comp, col_rel, col_abs, region, comps, offsets, rows: int, half_px: int,
-                 tol: float, z_min: float, return_measured: bool = False):
+                 tol: float, z_min: float, return_measured: bool = False, z_near: float | None = None):
     """(len(comps),) bool: across the component's agreeing vertical votes the column's slope
     along the row (projector px per camera px) differs between the component and the reported
     pixels it is linked to.
@@ -1023,6 +1073,7 @@ def _slope_jumps(vc, vk, vl, vv, comp, col_rel, col_abs, region, comps, offsets,
     otherwise the component is flagged.  Without measured votes it never is.  ``return_measured``:
     also return the number of measured *near* votes per component ((len(comps),) int64), for
     :func:`link_components`' rule that a component the test cannot measure is not linked.
+    ``z_near``: the near test's z threshold when it differs from ``z_min`` (the deep one's).
     """
     from . import kernels
 
@@ -1045,9 +1096,16 @@ def _slope_jumps(vc, vk, vl, vv, comp, col_rel, col_abs, region, comps, offsets,
         lr = np.full(c.size, np.nan)
         lr[fin] = np.log(g_c[fin] / g_s[fin])
         lrs.append(lr)
-    out = kernels.slope_verdicts(c, kk, d, lrs[0], lrs[1], comps, np.asarray(offsets, dtype=np.int64),
-                                 float(np.log1p(tol)), float(np.log1p(2 * tol)), float(z_min), _SLOPE_MIN_VOTES,
-                                 _SLOPE_NOISE_FLOOR)
+    offs64 = np.asarray(offsets, dtype=np.int64)
+    if z_near is None or float(z_near) == float(z_min):
+        out = kernels.slope_verdicts(c, kk, d, lrs[0], lrs[1], comps, offs64, float(np.log1p(tol)),
+                                     float(np.log1p(2 * tol)), float(z_min), _SLOPE_MIN_VOTES, _SLOPE_NOISE_FLOOR)
+    else:  # the near and the deep test at their own z (a NaN ratio is not measured)
+        none = np.full(c.size, np.nan)
+        out = kernels.slope_verdicts(c, kk, d, lrs[0], none, comps, offs64, float(np.log1p(tol)),
+                                     float(np.log1p(2 * tol)), float(z_near), _SLOPE_MIN_VOTES, _SLOPE_NOISE_FLOOR)
+        out |= kernels.slope_verdicts(c, kk, d, none, lrs[1], comps, offs64, float(np.log1p(tol)),
+                                      float(np.log1p(2 * tol)), float(z_min), _SLOPE_MIN_VOTES, _SLOPE_NOISE_FLOOR)
     if not return_measured:
         return out
     # measured near votes per (component, offset): few comps, a mask each

@@ -766,3 +766,75 @@ def test_rim_mask_equals_its_per_pixel_form_on_random_rows():
             np.testing.assert_array_equal(p_new, p_ref)
             n_masked += n_new
     assert n_masked > 200
+
+
+def test_cut_unlocated_cuts_only_a_bridge_that_does_not_fit():
+    """uw.cut_unlocated on one row of 4-px stripes (boundaries every 4 px, one segment): an
+    unlocated boundary whose neighbours bridge it at the row's spacing stays; shifting the
+    boundaries right of it by 1.5 px (bridge 1.19 x the spacing beside it: two surfaces whose
+    stripes only nearly line up) cuts the row there at bridge_ratio 1.15, not at 1.35; an
+    unlocated boundary at the segment's end (nothing to bridge) is cut; 0 disables the rule."""
+    lab = np.tile(np.repeat(np.array([G, B], np.uint8), 4), 10)[None]   # 20 stripes, 19 boundaries
+    segs = uw.unroll_rows(lab)
+    assert segs.n == 1 and segs.j_seg.size == 19
+    x = (segs.j_ua + 0.5).astype(np.float32)    # boundary between px 4k-1 and 4k: at 4k - 0.5
+    np.testing.assert_allclose(np.diff(x), 4.0)
+
+    def cut(jx, ratio=1.15):
+        s = uw.unroll_rows(lab)
+        s.j_x = jx.astype(np.float32)
+        return uw.cut_unlocated(s, ratio)
+
+    fits = x.copy()
+    fits[9] = np.nan
+    assert cut(fits).n == 1
+    shifted = x.copy()
+    shifted[10:] += 1.5
+    shifted[9] = np.nan
+    pieces = cut(shifted)
+    assert pieces.n == 2 and cut(shifted, 1.35).n == 1 and cut(shifted, 0.0).n == 1
+    # the cut is at the unlocated boundary: the pieces meet where boundary 9 was
+    assert pieces.u1[0] + 1 == pieces.u0[1] == segs.j_ub[9]
+    np.testing.assert_array_equal(pieces.rel, segs.rel)     # relative indices unchanged
+    end = x.copy()
+    end[18] = np.nan
+    assert cut(end).n == 2
+    two = x.copy()
+    two[[8, 9]] = np.nan    # a run of two, bridged at the row's spacing
+    assert cut(two).n == 1
+    two[10:] += 4.0         # one stripe too many for the bridge (1.33 x)
+    assert cut(two).n == 3  # cut at both: which one was the silhouette is unknown
+
+
+def test_weld_rule_params_are_validated():
+    for bad in (1.0, 0.5, -1.0):
+        with pytest.raises(GBError, match="bridge_ratio"):
+            uw.UnwrapParams(bridge_ratio=bad)
+    with pytest.raises(GBError, match="link_hang_rows"):
+        uw.UnwrapParams(link_hang_rows=-1)
+    with pytest.raises(GBError, match="link_slope_z_near"):
+        uw.UnwrapParams(link_slope_z_near=-1.0)
+    uw.UnwrapParams(bridge_ratio=0.0, link_hang_rows=0)
+
+
+def test_one_split_equals_cut_depth_edges_then_cut_unlocated():
+    """unwrap() applies the spacing and the bridge cuts in one split (uw._spacing_cut_mask,
+    uw._unlocated_cut_mask with the spacing cuts as piece ends); the pieces equal those of the two
+    public cutters run one after the other, on a simulated hard frame's segments with noisy
+    boundaries, 3 % of them unlocated (runs included)."""
+    _, sm = _sim_frame("hard_plane")
+    segs = uw.unroll_rows(sm.labels)
+    rng = np.random.default_rng(4)
+    jx = 0.5 * (segs.j_ua + segs.j_ub) + rng.normal(0, 0.4, segs.j_ua.size)
+    lost = rng.random(jx.size) < 0.03
+    lost[1:] |= lost[:-1] & (rng.random(jx.size - 1) < 0.3)
+    jx[lost] = np.nan
+    segs.j_x = jx.astype(np.float32)
+    want = uw.cut_unlocated(uw.cut_depth_edges(segs, 1.2), 1.15)
+    c_depth = uw._spacing_cut_mask(segs, 1.2)
+    c_unloc = uw._unlocated_cut_mask(segs, 1.15, c_depth)
+    assert c_depth.sum() > 100 and c_unloc.sum() > 100 and not (c_depth & c_unloc).any()
+    got = uw._apply_cuts(segs, c_depth | c_unloc)
+    assert got.n == segs.n + int(c_depth.sum() + c_unloc.sum()) == want.n
+    for f in ("seg", "row", "u0", "u1", "j0", "j1", "parity", "j_seg", "j_ua", "j_ub", "j_rel", "j_x"):
+        np.testing.assert_array_equal(getattr(got, f), getattr(want, f), err_msg=f)
