@@ -552,7 +552,7 @@ def fit_junctions(j_x, seg_j0, seg_j1, coef):
 
 @njit(cache=True, nogil=True)
 def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j_x, j_bnd, stripe_px,
-                        extrapolate):
+                        extrapolate, contact_ratio=0.0):
     """Continuous projector column of every pixel of the accepted segments.
 
     Between two consecutive boundaries at camera positions ``x_k < x_{k+1}`` with projector columns
@@ -561,11 +561,43 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
     of a segment are extrapolated with the neighbouring interval's slope up to ``extrapolate``
     times that interval's width (else left NaN).  Boundaries out of order (non-increasing) are
     dropped.  ``j_bnd`` is the boundary index (relative or absolute: the caller shifts).
+
+    ``contact_ratio`` > 0: an end of a segment that touches the next segment of its row (at most
+    one pixel between their spans) is not extrapolated when the boundary spacing across the
+    contact jumps by more than this factor (last interval of one, first of the other; or either
+    has fewer than two located boundaries): the two touch across a depth edge, where the run the
+    edge cuts may carry the other surface's colours (mixed pixels, aliased stripes of a surface
+    seen at grazing incidence, a colour camera's demosaicing).  Segments split on one surface
+    (a misclassified pixel) keep their spacing and are extrapolated as before.
     """
     col = np.full((H, W), np.nan, np.float32)
     xs = np.empty(W + 2, np.float64)
     cs = np.empty(W + 2, np.float64)
-    for s in range(seg_row.shape[0]):
+    ns = seg_row.shape[0]
+    # first and last located interval of every segment (NaN: fewer than two located boundaries)
+    sp_first = np.full(ns, np.nan)
+    sp_last = np.full(ns, np.nan)
+    if contact_ratio > 0:
+        for s in range(ns):
+            a = np.nan
+            for j in range(seg_j0[s], seg_j1[s]):
+                x = j_x[j]
+                if np.isnan(x):
+                    continue
+                if not np.isnan(a) and x > a + 0.05:
+                    sp_first[s] = x - a
+                    break
+                a = x
+            b = np.nan
+            for j in range(seg_j1[s] - 1, seg_j0[s] - 1, -1):
+                x = j_x[j]
+                if np.isnan(x):
+                    continue
+                if not np.isnan(b) and x < b - 0.05:
+                    sp_last[s] = b - x
+                    break
+                b = x
+    for s in range(ns):
         if not seg_ok[s]:
             continue
         v = seg_row[s]
@@ -581,13 +613,20 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
             n += 1
         if n < 2:
             continue
+        crow = col[v]
+        u = seg_u0[s]
+        u_end = seg_u1[s]
+        if contact_ratio > 0:
+            if s > 0 and seg_row[s - 1] == v and seg_u1[s - 1] >= u - 2 and \
+                    _spacing_jump(sp_last[s - 1], sp_first[s], contact_ratio):
+                u = max(u, np.int64(np.ceil(xs[0])))
+            if s + 1 < ns and seg_row[s + 1] == v and seg_u0[s + 1] <= u_end + 2 and \
+                    _spacing_jump(sp_last[s], sp_first[s + 1], contact_ratio):
+                u_end = min(u_end, np.int64(np.floor(xs[n - 1])))
         # per interval k: its pixels are those the per-pixel rule gives it (the largest k <= n-2
         # with u >= xs[k], the first interval also left of xs[0]); only pixels outside
         # [xs[k], xs[k+1]] (extrapolated: first and last interval) need the reach test, the rest
         # is one branch-free loop with the interval's slope (the same expression per pixel)
-        crow = col[v]
-        u = seg_u0[s]
-        u_end = seg_u1[s]
         k = 0
         while u <= u_end:
             while k < n - 2 and u >= xs[k + 1]:
@@ -614,7 +653,12 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
                     crow[u] = c0 + (u - x0) * slope
                 u += 1
     return col
-    return col
+
+
+@njit(cache=True, nogil=True)
+def _spacing_jump(a, b, ratio):
+    # two boundary spacings (camera px) differ by more than ``ratio`` (False if one is unknown)
+    return a > ratio * b or b > ratio * a
 
 
 @njit(cache=True, nogil=True)

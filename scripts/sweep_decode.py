@@ -62,6 +62,16 @@ def scene_list(quick: bool = False) -> list[tuple[str, str, int, int, object]]:
     for seed, tilt in enumerate([(0.0, 30.0), (25.0, -20.0), (-35.0, 10.0)]):
         out.append((f"plane_tilt_{seed}_s{seed}", "typical", seed, 3, lambda tilt=tilt: S.plane(650.0, tilt)))
     out.append(("plane_hard_s2", "hard", 2, 3, lambda: S.plane(650.0, (10.0, 20.0))))
+    # a Bayer colour camera (RGGB mosaic, noise per photosite, OpenCV's edge-aware demosaicing):
+    # most real colour cameras; the demosaicing mixes neighbouring pixels' colours at every stripe
+    for seed in range(3):
+        out.append((f"multi_650_bayer_s{seed}", "typical+RGGB", seed, 3, lambda: S.multi_object(650.0)))
+    for i in (2, 6):
+        out.append((f"multi_move_bayer_i{i}", "typical+RGGB", i, 1, lambda i=i: S.multi_object(650.0 + 5.0 * i)))
+    out.append(("sphere_bayer_s0", "typical+RGGB", 0, 3, lambda: S.sphere((0.0, 0.0, 650.0), 100.0, wall_mm=900.0)))
+    out.append(("head_bayer_s0", "typical+RGGB", 0, 3, lambda: S.head(650.0)))
+    out.append(("plane_tilt_bayer_s0", "typical+RGGB", 0, 3, lambda: S.plane(650.0, (0.0, 30.0))))
+    out.append(("step_bayer_s0", "typical+RGGB", 0, 3, lambda: S.step(650.0, 40.0)))
     if quick:
         out = out[::3]
     return out
@@ -73,11 +83,12 @@ def load_or_render(name, preset, seed, ss, factory, cache: Path | None):
     from gbscan.io import save_npz
     from gbscan.pattern import PatternSpec, render_pattern
 
-    f = cache / f"{name}_{preset}_ss{ss}.npz" if cache is not None else None
+    f = cache / f"{name}_{preset.replace('+', '_')}_ss{ss}.npz" if cache is not None else None
     if f is not None and f.exists():
         z = np.load(f)
         return z["image"], z["truth"], z["depth_edge"], z["lit"]
-    cond = dataclasses.replace(sim.preset(preset), supersample=ss)
+    name_, _, bayer = preset.partition("+")   # "typical+RGGB": the preset seen through a Bayer mosaic
+    cond = dataclasses.replace(sim.preset(name_), supersample=ss, bayer=bayer)
     r = sim.render(sim.paper_rig(), factory(), render_pattern(PatternSpec()), cond, seed=seed)
     out = (r.image, r.proj_xy[..., 0].astype(np.float32), r.depth_edge, r.lit)
     if f is not None:
@@ -118,7 +129,7 @@ def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = 
     spec = PatternSpec()
     out = print if show else (lambda *a, **k: None)
     tot = {"lit": 0, "reported": 0, "wrong": 0, "wrong_edge": 0, "bad_scenes": 0, "scenes": len(scenes)}
-    out(f"{'scene':26s} {'preset':8s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'ms':>6s}")
+    out(f"{'scene':26s} {'preset':12s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'ms':>6s}")
     for k, (name, preset, seed, ss, factory) in enumerate(scenes):
         t0 = time.perf_counter()
         image, truth, depth_edge, lit = load_or_render(name, preset, seed, ss, factory, cache)
@@ -135,7 +146,7 @@ def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = 
         tot["wrong"] += counts["wrong"]
         tot["wrong_edge"] += counts["wrong_edge"]
         tot["bad_scenes"] += int(counts["wrong"] + counts["wrong_edge"] > 0)
-        out(f"{name:26s} {preset:8s} {100.0 * rep / max(cand.sum(), 1):9.2f} {counts['wrong']:6d} "
+        out(f"{name:26s} {preset:12s} {100.0 * rep / max(cand.sum(), 1):9.2f} {counts['wrong']:6d} "
             f"{counts['wrong_edge']:10d} {(t2 - t1) * 1e3:6.0f}", flush=True)
         for d in rows:
             if d["wrong_px"] == d["edge_px"] and not edges:
@@ -201,7 +212,7 @@ def main(argv=None) -> int:
                   f"{tot['wrong_edge']:10d} {tot['bad_scenes']:>7d}/{tot['scenes']}", flush=True)
         return 0
     tot = sweep(params, scenes, cache, args.edges)
-    print(f"{'TOTAL':26s} {'':8s} {100.0 * tot['reported'] / max(tot['lit'], 1):9.2f} {tot['wrong']:6d} "
+    print(f"{'TOTAL':26s} {'':12s} {100.0 * tot['reported'] / max(tot['lit'], 1):9.2f} {tot['wrong']:6d} "
           f"{tot['wrong_edge']:10d}   scenes with wrong pixels: {tot['bad_scenes']}/{tot['scenes']}")
     return 0
 

@@ -838,3 +838,45 @@ def test_one_split_equals_cut_depth_edges_then_cut_unlocated():
     assert got.n == segs.n + int(c_depth.sum() + c_unloc.sum()) == want.n
     for f in ("seg", "row", "u0", "u1", "j0", "j1", "parity", "j_seg", "j_ua", "j_ub", "j_rel", "j_x"):
         np.testing.assert_array_equal(getattr(got, f), getattr(want, f), err_msg=f)
+
+
+def _two_segments(spacing_b: float, gap_px: int):
+    """One row: segment A over pixels 0..29 with boundaries every 4 px from 2 to 26, segment B
+    from 30 + gap_px on with boundaries every ``spacing_b`` px from 1 px after its start."""
+    a_x = np.arange(2.0, 27.0, 4.0)
+    b0 = 30 + gap_px
+    b_x = b0 + 1.0 + spacing_b * np.arange(8)
+    W = int(np.ceil(b_x[-1])) + 3
+    j_x = np.r_[a_x, b_x]
+    j_bnd = np.r_[np.arange(a_x.size), 100 + np.arange(b_x.size)].astype(np.float64)
+    seg = (np.zeros(2, np.int32), np.array([0, b0], np.int32), np.array([29, W - 1], np.int32),
+           np.array([0, a_x.size], np.int32), np.array([a_x.size, j_x.size], np.int32))
+    return W, seg, j_x, j_bnd
+
+
+@pytest.mark.parametrize("spacing_b, gap_px, ratio, cut", [
+    (2.0, 1, 1.35, True),     # a depth edge: the spacing halves across the contact (one pixel between)
+    (2.0, 0, 1.35, True),     # ... the segments side by side
+    (4.2, 1, 1.35, False),    # one surface split (a misclassified pixel): the spacing goes on
+    (2.0, 1, 0.0, False),     # the rule off
+    (2.0, 2, 1.35, False)])   # no contact: two pixels or more between the segments
+def test_interpolate_columns_does_not_extrapolate_across_a_depth_edge_contact(spacing_b, gap_px, ratio, cut):
+    """DecodeParams.contact_ratio: where two segments of a row touch and the boundary spacing
+    jumps across the contact, neither end is extrapolated beyond its last located boundary (the
+    run the depth edge cuts may carry the other surface's colours); elsewhere ends are
+    extrapolated up to ``extrapolate`` intervals, as before."""
+    from gbscan import kernels
+
+    W, seg, j_x, j_bnd = _two_segments(spacing_b, gap_px)
+    col = kernels.interpolate_columns(1, W, *seg, np.ones(2, np.uint8), j_x, j_bnd, 8.0, 0.75, ratio)[0]
+    ref = kernels.interpolate_columns(1, W, *seg, np.ones(2, np.uint8), j_x, j_bnd, 8.0, 0.75)[0]
+    a_end = np.arange(27, 30)                       # beyond A's last boundary (26)
+    b_start = np.arange(seg[1][1], int(np.ceil(j_x[7])))   # before B's first boundary
+    assert np.all(np.isfinite(ref[a_end])) and np.all(np.isfinite(ref[b_start]))
+    inner = np.isfinite(ref)
+    inner[a_end] = inner[b_start] = False
+    np.testing.assert_array_equal(col[inner], ref[inner])   # the rest never changes
+    if cut:
+        assert np.all(np.isnan(col[a_end])) and np.all(np.isnan(col[b_start]))
+    else:
+        np.testing.assert_array_equal(col, ref)
