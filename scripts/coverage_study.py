@@ -10,7 +10,13 @@ and prints, over the lit non-edge pixels (the accuracy targets' denominator):
   stripes arrive dim and compressed at grazing projector incidence, edge-on at grazing camera
   incidence, so this splits what the decoder could do better from what the geometry denies;
 * the lost pixels by the decoder's reason (``StripeMap.mask``; "ok" = decoded, then removed by
-  the cleaning), within 70 degrees of both and beyond.
+  the cleaning), within 70 degrees of both and beyond;
+* the ceiling: what a decoder would keep that got every pixel within 70 / 75 / 80 / 85 degrees of
+  both and none beyond (the target's 95 % asks for pixels beyond the angle where the ceiling
+  reaches it).
+
+``--bayer RGGB`` renders through a colour filter mosaic and OpenCV's demosaicing (most colour
+cameras) instead of full RGB per pixel (the paper's 3-CCD camera).
 
 ``--out DIR`` writes ``coverage_<scene>_s<seed>.png`` per frame: the lit non-edge pixels, kept in
 grey, lost ones coloured by reason (the decoder preview's colours), grazing ones (beyond 70
@@ -28,7 +34,7 @@ GRAZING_DEG = 70.0
 BINS_DEG = (0, 40, 60, 70, 75, 80, 90)
 
 
-def study(name: str, seed: int, preset: str, out: Path | None) -> dict:
+def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "") -> dict:
     from gbscan import sim
     from gbscan.calibfile import calibration_from_rig
     from gbscan.decode import REASONS
@@ -37,8 +43,11 @@ def study(name: str, seed: int, preset: str, out: Path | None) -> dict:
 
     rig = sim.paper_rig()
     spec = PatternSpec()
-    print(f"rendering {name} (seed {seed}, {preset}) ...", file=sys.stderr, flush=True)
-    r = sim.render(rig, getattr(sim.scenes, name)(), render_pattern(spec), sim.preset(preset), seed=seed)
+    import dataclasses
+
+    print(f"rendering {name} (seed {seed}, {preset}{', ' + bayer if bayer else ''}) ...", file=sys.stderr, flush=True)
+    cond = dataclasses.replace(sim.preset(preset), bayer=bayer)
+    r = sim.render(rig, getattr(sim.scenes, name)(), render_pattern(spec), cond, seed=seed)
     s = Scanner(calibration_from_rig(rig, spec)).scan(r.image)
     P = r.point.astype(np.float64)
     good = r.lit & ~r.depth_edge & np.isfinite(P[..., 2])
@@ -63,6 +72,10 @@ def study(name: str, seed: int, preset: str, out: Path | None) -> dict:
     print(f"   within {GRAZING_DEG:.0f} deg of both: {100 * res['facing_frac']:.1f} % of the pixels, kept "
           f"{100 * res['facing_kept']:.2f} %; beyond: kept "
           f"{100 * (kept & ~facing).sum() / max((good & ~facing).sum(), 1):.1f} %")
+    worst_inc = np.maximum(cam, proj)
+    res["ceiling"] = {a: float((good & (worst_inc < a)).sum() / good.sum()) for a in (70, 75, 80, 85)}
+    print("   ceiling (every pixel within the angle of both, none beyond): " +
+          ", ".join(f"{a} deg {100 * c:.1f} %" for a, c in res["ceiling"].items()))
     for label, sel in (("within", facing), ("beyond", good & ~facing)):
         lost = sel & ~s.valid
         codes, counts = np.unique(mask[lost], return_counts=True)
@@ -123,6 +136,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0", help="comma-separated render seeds (default 0)")
     ap.add_argument("--preset", default="typical", choices=("clean", "typical", "hard"))
     ap.add_argument("--out", help="folder for the coverage pictures (created)")
+    ap.add_argument("--bayer", default="", choices=("", "RGGB", "BGGR", "GRBG", "GBRG"),
+                    help="render through this colour filter mosaic, demosaiced (default: full RGB per pixel)")
     args = ap.parse_args(argv)
     from gbscan import sim
     from gbscan.errors import GBError
@@ -142,10 +157,11 @@ def main(argv=None) -> int:
             out = make_dir(args.out, "--out")
         except GBError as e:
             ap.error(str(e))
-    print(f"# coverage study, paper rig, preset {args.preset}, default decoder and cleaning")
+    print(f"# coverage study, paper rig, preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}, "
+          "default decoder and cleaning")
     for name in names:
         for seed in seeds:
-            res = study(name, seed, args.preset, out)
+            res = study(name, seed, args.preset, out, args.bayer)
             if "picture" in res:
                 print(f"   wrote {res['picture']}")
     return 0

@@ -1,6 +1,6 @@
 """Which stripe width?  Decode simulated frames at stripe_px 4, 6, 8, 10, 12 and print a table.
 
-    python scripts/stripe_width_study.py [--scenes plane,sphere] [--preset typical]
+    python scripts/stripe_width_study.py [--scenes plane,sphere] [--preset typical] [--bayer RGGB]
 
 For each width: coverage (reported / lit non-edge pixels), index correctness (reported non-edge
 pixels whose column is within half a stripe of the truth), column RMS (projector px) and the
@@ -21,7 +21,10 @@ def main(argv=None) -> int:
     ap.add_argument("--widths", default="4,6,8,10,12")
     ap.add_argument("--scenes", default="plane,sphere")
     ap.add_argument("--preset", default="typical")
+    ap.add_argument("--bayer", default="", choices=("", "RGGB", "BGGR", "GRBG", "GBRG"),
+                    help="render through this colour filter mosaic, demosaiced (default: full RGB per pixel)")
     args = ap.parse_args(argv)
+    import dataclasses
 
     from gbscan import sim
     from gbscan.decode import decode
@@ -29,7 +32,9 @@ def main(argv=None) -> int:
 
     rig = sim.paper_rig()
     rays = rig.camera.pixel_rays()
-    print(f"# stripe width study, preset {args.preset}, paper rig at 650 mm")
+    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer)
+    print(f"# stripe width study, preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}, "
+          "paper rig at 650 mm")
     print(f"{'scene':8s} {'stripe_px':>9s} {'cam px/stripe':>13s} {'coverage %':>10s} {'index ok %':>10s} "
           f"{'col RMS px':>10s} {'depth RMS mm':>12s} {'boundaries':>10s}")
     for scene_name in args.scenes.split(","):
@@ -37,7 +42,7 @@ def main(argv=None) -> int:
         for w in (int(x) for x in args.widths.split(",")):
             spec = PatternSpec(stripe_px=w)
             print(f"rendering {scene_name} at {w} px ...", file=sys.stderr, flush=True)
-            r = sim.render(rig, scene, render_pattern(spec), args.preset, seed=0)
+            r = sim.render(rig, scene, render_pattern(spec), cond, seed=0)
             sm = decode(r.image, spec)
             truth = r.proj_xy[..., 0]
             ok = sm.valid & np.isfinite(truth) & ~r.depth_edge

@@ -299,11 +299,30 @@ def test_sim_curved_coverage_away_from_grazing_incidence(name, min_kept):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="coverage only: depth RMS and worst error pass, but ~91% (sphere) / ~84% (head) "
+def test_face_coverage_target_needs_pixels_beyond_80_degrees():
+    """Why the face's 95 % is out of reach at the paper's geometry: even a decoder that kept every
+    lit non-edge pixel whose surface is within 80 degrees of both the camera and the projector,
+    and none beyond, would keep under 95 % of them (94.6 % at seed 0; the sphere 95.3 %).  Beyond
+    80 degrees an 8 px stripe arrives under 0.7 camera px wide."""
+    from gbscan import sim
+
+    for name, lo, hi in (("head", 0.93, 0.95), ("sphere", 0.95, 0.96)):
+        r, _ = sim_scan(name)
+        cam, proj = sim.incidence_deg(paper_rig(), r)
+        good = r.lit & ~r.depth_edge & np.isfinite(r.point[..., 2])
+        ceiling = (good & (np.maximum(cam, proj) < 80)).sum() / good.sum()
+        print(f"{name}: {100 * ceiling:.1f} % of lit non-edge pixels within 80 degrees of both")
+        assert lo < ceiling < hi
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="coverage only: depth RMS and worst error pass, but ~92% (sphere) / ~85% (head) "
                                        "of lit non-edge pixels are kept, not 95%: the rest sits at grazing incidence "
                                        "(the surface beyond 70 degrees from the camera or the projector: 17% / 21% of "
                                        "the pixels, where the stripes arrive dim and compressed or are seen edge-on), "
-                                       "and for the face around the nose (within 70 degrees: 99.9% / 94.9% kept)")
+                                       "and for the face around the nose (within 70 degrees: 99.9% / 95.2% kept); for "
+                                       "the face 95% needs pixels beyond 80 degrees "
+                                       "(test_face_coverage_target_needs_pixels_beyond_80_degrees)")
 @pytest.mark.parametrize("name", ["sphere", "head"])
 def test_sim_curved_accuracy_full_target(name):
     kept, rms, worst = sim_figures(*sim_scan(name))

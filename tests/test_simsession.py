@@ -157,3 +157,25 @@ def test_cli_simulate(tmp_path):
     assert t["point"].shape == (480, 640, 3) and t["lit"].dtype == bool
     np.testing.assert_array_equal(t["image"], img)
     assert main(["simulate", "plane", "-o", str(tmp_path / "a.png"), "--truth", str(tmp_path / "t.txt")]) == 1
+
+
+def test_cli_simulators_take_a_bayer_camera(tmp_path, capsys):
+    """--bayer renders through a colour filter mosaic and OpenCV's demosaicing (most colour
+    cameras): the image differs from the full-RGB one of the same scene and seed, and a session
+    records the mosaic in its truth's conditions."""
+    from gbcal.cli import main as gbcal_main
+    from gbscan.cli import main
+
+    paths = [tmp_path / "rgb.png", tmp_path / "bayer.png"]
+    assert main(["simulate", "step", "-o", str(paths[0]), "--preset", "clean"]) == 0
+    assert main(["simulate", "step", "-o", str(paths[1]), "--preset", "clean", "--bayer", "RGGB"]) == 0
+    assert "Bayer RGGB" in capsys.readouterr().out
+    a, b = (read_image_rgb(p, size=(640, 480)).astype(int) for p in paths)
+    assert 0.5 < np.abs(a - b).mean() < 20   # the same scene, another camera
+    out = tmp_path / "sess"
+    assert gbcal_main(["simulate-session", str(out), "--poses", "1", "--preset", "clean", "--bayer", "GRBG",
+                       "--quiet"]) == 0
+    assert load_truth(out)["conditions"].bayer == "GRBG"
+    with pytest.raises(SystemExit) as e:
+        main(["simulate", "step", "-o", str(paths[0]), "--bayer", "RGB"])
+    assert e.value.code == 2

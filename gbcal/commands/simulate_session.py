@@ -27,6 +27,9 @@ def add_arguments(p):
     p.add_argument("--preset", default="typical", choices=["clean", "typical", "hard"],
                    help="imaging conditions (default typical)")
     p.add_argument("--seed", type=int, default=0, help="random seed for poses and noise (default 0)")
+    p.add_argument("--bayer", default="", choices=["RGGB", "BGGR", "GRBG", "GBRG"], metavar="PATTERN",
+                   help="a colour camera with this Bayer mosaic (RGGB, BGGR, GRBG, GBRG), demosaiced by OpenCV; "
+                        "default: full RGB per pixel, like the paper's 3-CCD camera")
     p.add_argument("--board", type=_board_arg, default=(9, 7), metavar="COLSxROWS",
                    help="inner corners of the board (default 9x7)")
     p.add_argument("--square-mm", type=float, default=20.0,
@@ -37,7 +40,10 @@ def add_arguments(p):
 
 
 def run(args) -> int:
+    import dataclasses
     import time
+
+    from gbscan import sim
 
     from gbscan.errors import GBError
     from gbscan.pattern import PatternSpec
@@ -52,9 +58,11 @@ def run(args) -> int:
     rig = paper_rig()
     spec = PatternSpec(rig.projector.width, rig.projector.height, args.stripe_px, not args.no_markers)
     t0 = time.time()
+    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer)
     out = write_session(args.outdir, rig, spec, (args.board[0], args.board[1], args.square_mm), args.poses,
-                        args.preset, args.seed, progress=not args.quiet)
+                        cond, args.seed, progress=not args.quiet)
+    camera = f", Bayer {args.bayer}" if args.bayer else ""
     print(f"wrote simulated session {out}: {args.poses} poses of a {args.board[0]}x{args.board[1]} board "
-          f"({args.square_mm:g} mm), preset {args.preset}, seed {args.seed}, in {time.time() - t0:.0f} s; "
+          f"({args.square_mm:g} mm), preset {args.preset}{camera}, seed {args.seed}, in {time.time() - t0:.0f} s; "
           f"ground truth in {out / 'truth.yaml'}")
     return 0

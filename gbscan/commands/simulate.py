@@ -18,6 +18,9 @@ def add_arguments(p):
     p.add_argument("--preset", default="typical", choices=["clean", "typical", "hard"],
                    help="imaging conditions (default typical)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--bayer", default="", choices=["RGGB", "BGGR", "GRBG", "GBRG"], metavar="PATTERN",
+                   help="a colour camera with this Bayer mosaic (RGGB, BGGR, GRBG, GBRG), demosaiced by OpenCV; "
+                        "default: full RGB per pixel, like the paper's 3-CCD camera")
     p.add_argument("--distance-mm", type=float, default=650.0, help="scene distance in mm (default 650)")
     p.add_argument("--truth", help="also write the ground truth to this .npz")
     p.add_argument("--frame", help="projector frame PNG (default: the single-shot pattern)")
@@ -49,6 +52,7 @@ def make_scene(name: str, distance_mm: float = 650.0):
 
 
 def run(args) -> int:
+    import dataclasses
     import time
     from pathlib import Path
 
@@ -69,9 +73,11 @@ def run(args) -> int:
         frame = render_pattern(PatternSpec(pw, ph, args.stripe_px, not args.no_markers))
     t0 = time.time()
     scene = make_scene(args.scene, args.distance_mm)
-    r = sim.render(rig, scene, frame, args.preset, seed=args.seed)
+    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer)
+    r = sim.render(rig, scene, frame, cond, seed=args.seed)
     out = write_png(args.output, r.image)
-    msg = f"wrote {out} ({args.scene}, preset {args.preset}, seed {args.seed}, {time.time() - t0:.1f} s)"
+    camera = f", Bayer {args.bayer}" if args.bayer else ""
+    msg = f"wrote {out} ({args.scene}, preset {args.preset}{camera}, seed {args.seed}, {time.time() - t0:.1f} s)"
     if args.truth:
         r.save_truth(args.truth)
         msg += f"; ground truth {Path(args.truth)}"
