@@ -106,7 +106,19 @@ class UnwrapParams:
         offset by construction; two can, together with the marker-free stripes around them, when
         the margin test passes).
     index_margin : the best offset's mismatch must be lower than the runner-up's by this
-        fraction of the region's marker evidence.
+        fraction of the region's marker evidence (or by ``index_margin_events`` marker events,
+        when that is less).
+    index_margin_events : the same margin counted in marker events: a marker event is one marker
+        stripe seen where the offset expects none, or expected where the region shows green or
+        blue, about ``evidence / (2 markers_seen)`` pixels.  The runner-up must mismatch by this
+        many events more than the best (0: only ``index_margin``).  The fixed fraction asks for
+        2 events of a region seeing 4 markers, 2.5 of one seeing 5, 4 of one seeing 8: so a region
+        of 4 markers whose runner-up differs by exactly two events (a fake marker *and* a missed
+        one) sat on the rule's edge, and big regions flipped in and out with the blur (moving frame
+        8: a 9900-px panel, runner-up 682 px worse than the best, margin 691.5 px).  1.5 events
+        rules out any single misread marker stripe.  Sweep (``scripts/sweep_decode.py``, 44 scenes):
+        reported 83.20 -> 84.41 %, no index error added (the wrong pixels it adds are a linked
+        14-px fragment half a stripe off at a horizontal silhouette).
     max_mismatch : largest acceptable mismatch of the best offset, as a fraction of the evidence.
     conflict_run_px : a run of at least this many px whose marker/non-marker colour contradicts its
         region's offset is a disagreement (:func:`marker_conflicts`).
@@ -201,6 +213,7 @@ class UnwrapParams:
     min_marker_px: int = 12
     min_markers: int = 2
     index_margin: float = 0.25
+    index_margin_events: float = 1.5
     max_mismatch: float = 0.05
     conflict_run_px: int = 2
     conflict_events: int = 2
@@ -235,6 +248,9 @@ class UnwrapParams:
                           f"{self.max_gap_px}, {self.spike_px}, {self.marker_flank_px}")
         if int(self.link_votes) < 0 or int(self.link_lines) < 1 or int(self.link_gap_px) < 0:
             raise GBError("UnwrapParams.link_votes and link_gap_px must be >= 0, link_lines >= 1")
+        if not float(self.index_margin_events) >= 0:
+            raise GBError(f"UnwrapParams.index_margin_events must be >= 0 (0: the fixed index_margin only), got "
+                          f"{self.index_margin_events}")
         if int(self.link_hang_rows) < 0:
             raise GBError(f"UnwrapParams.link_hang_rows must be >= 0 (0 disables), got {self.link_hang_rows}")
         if int(self.min_believable_junctions) < 0 or int(self.link_rows) < 1 or int(self.link_reach_rows) < 0:
@@ -680,6 +696,10 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
 
 
 # -- absolute indexing (beyond the paper) -------------------------------------------------------
+#: RegionIndex.why of a region whose best offset mismatches more than ``max_mismatch``
+MISFIT = "markers do not fit the pattern"
+
+
 @dataclass
 class RegionIndex:
     """Result of :func:`index_regions` per region (arrays of length n_regions).
@@ -706,6 +726,15 @@ class RegionIndex:
 _SCORE_COMPILED = True
 
 
+def _margin_px(params: UnwrapParams, evidence, seen) -> float:
+    """Pixels by which the runner-up offset must mismatch more than the best: ``index_margin`` of
+    the evidence, or ``index_margin_events`` marker events (evidence / (2 seen) px each) when less."""
+    m = params.index_margin * float(evidence)
+    if params.index_margin_events > 0 and seen > 0:
+        m = min(m, params.index_margin_events * float(evidence) / (2.0 * float(seen)))
+    return m
+
+
 def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, n_regions: int,
                   pattern: PatternSpec, params: UnwrapParams = UnwrapParams()) -> RegionIndex:
     """Absolute stripe offset of every region by the cyan markers (a matched filter).
@@ -717,7 +746,9 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
     pattern are candidates.  The best offset is accepted only if (a) the region saw at least
     ``min_markers`` distinct marker stripes with ``min_marker_px`` pixels each, (b) its mismatch is
     at most ``max_mismatch`` of the marker evidence and (c) the runner-up mismatches by at least
-    ``index_margin`` of the evidence more.  Otherwise the region is *unindexed* -- never a guess.
+    ``index_margin`` of the evidence more, or ``index_margin_events`` marker events more where
+    that is less (regions seeing many markers).  Otherwise the region is *unindexed* -- never a
+    guess.
     """
     n_st = pattern.n_stripes
     is_marker = np.zeros(n_st, bool)
@@ -749,8 +780,8 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
             elif seen[k] < params.min_markers:
                 out.why[k] = f"too few markers ({int(seen[k])} < {params.min_markers})"
             elif mismatch[k] > params.max_mismatch * evidence[k]:
-                out.why[k] = "markers do not fit the pattern"
-            elif runner_up[k] - mismatch[k] < params.index_margin * evidence[k]:
+                out.why[k] = MISFIT
+            elif runner_up[k] - mismatch[k] < _margin_px(params, evidence[k], seen[k]):
                 out.why[k] = "ambiguous offset"
             else:
                 out.indexed[k] = True
@@ -805,8 +836,8 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
         if seen < params.min_markers:
             out.why[k] = f"too few markers ({seen} < {params.min_markers})"
         elif b_mis > params.max_mismatch * ev:
-            out.why[k] = "markers do not fit the pattern"
-        elif second - b_mis < params.index_margin * ev:
+            out.why[k] = MISFIT
+        elif second - b_mis < _margin_px(params, ev, seen):
             out.why[k] = "ambiguous offset"
         else:
             out.indexed[k] = True

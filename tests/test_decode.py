@@ -1031,12 +1031,16 @@ def test_rows_of_a_linked_region_are_checked_against_its_markers(frame, monkeypa
     rows as well — they border the dropped sphere: the check is tested with the guard off.  On
     frame 6 the weld rides on a row crossing the silhouette at a boundary the locator cannot
     find, which ``UnwrapParams.bridge_ratio`` now cuts before any indexing: the check is tested
-    with that rule off too; ``test_weld_across_an_unlocated_boundary_is_cut`` covers the rule.)"""
+    with that rule off too; ``test_weld_across_an_unlocated_boundary_is_cut`` covers the rule.
+    On frame 8 the margin counted in marker events, ``index_margin_events``, indexes the wall by
+    its own markers, so the regular check of the marker-indexed regions drops the sphere's rows:
+    the linked-region check is tested with the fixed margin alone.)"""
     import gbscan.unwrap as uw
 
     r = _moving_frame(650.0 + 5.0 * frame, frame)
     assert _wrong_off_edges(decode(r.image, PatternSpec()), r) == 0  # the defaults
-    unguarded = DecodeParams(**dict(SIGMA2, rim_guard_px=0, rim_end_rows=0), unwrap=uw.UnwrapParams(bridge_ratio=0.0))
+    unguarded = DecodeParams(**dict(SIGMA2, rim_guard_px=0, rim_end_rows=0),
+                             unwrap=uw.UnwrapParams(bridge_ratio=0.0, index_margin_events=0.0))
     sm = decode(r.image, PatternSpec(), unguarded)
     assert sm.stats["regions_linked"] >= 1
     orig = uw.marker_conflicts
@@ -1343,3 +1347,26 @@ def test_bayer_camera_depth_edge_runs_are_not_extrapolated():
     assert scores(sm, r)["coverage"] > scores(sm0, r)["coverage"] - 0.005
     with pytest.raises(GBError, match="contact_ratio"):
         DecodeParams(contact_ratio=0.9)
+
+
+def test_index_margin_in_marker_events_indexes_a_four_marker_panel():
+    """UnwrapParams.index_margin_events: moving frame 8 (multi-object at 690 mm, seed 8) has a
+    9900-px panel seeing 4 markers whose runner-up offset mismatches two marker events (one
+    marker seen where it expects none, one expected where the panel is green or blue): 682 px
+    more than the best, against the fixed margin's 25 % of the evidence, 691.5 px.  Counted in
+    events (1.5: no single misread marker stripe can flip it) the panel is indexed, right."""
+    from gbscan.unwrap import UnwrapParams, _margin_px
+
+    p = UnwrapParams()
+    assert _margin_px(p, 2766, 4) == pytest.approx(1.5 * 2766 / 8)        # 4 markers: events rule
+    assert _margin_px(p, 1000, 2) == pytest.approx(250.0)                 # 2 markers: 25 % rules
+    assert _margin_px(UnwrapParams(index_margin_events=0), 2766, 4) == pytest.approx(691.5)
+    r = _moving_frame(690.0, 8)
+    sm = decode(r.image, PatternSpec())
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(index_margin_events=0)))
+    s, s0 = scores(sm, r), scores(sm0, r)
+    print(f"moving frame 8 coverage: fixed margin {s0['coverage']:.4f}, in events {s['coverage']:.4f}")
+    assert s["coverage"] > s0["coverage"] + 0.03
+    assert _wrong_off_edges(sm, r) == 0 and s["index_ok"] == 1.0
+    with pytest.raises(GBError, match="index_margin_events"):
+        UnwrapParams(index_margin_events=-1)
