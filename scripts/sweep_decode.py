@@ -2,7 +2,8 @@
 
 Renders a set of simulated scenes of the paper rig (multi-object at several depths and seeds,
 the moving multi-object sequence of the batch tests, sphere and head at several positions, a
-step, tilted planes; "typical" and "hard" presets), decodes each and compares every reported
+step, tilted planes; "typical" and "hard" presets; a Bayer colour camera; the real face mesh of
+``../shared/data/fran_face`` when it is there), decodes each and compares every reported
 pixel with the simulator's truth (``r.proj_xy``):
 
 * ``wrong``: reported, off any depth edge, column more than half a stripe from the truth (the
@@ -72,6 +73,12 @@ def scene_list(quick: bool = False) -> list[tuple[str, str, int, int, object]]:
     out.append(("head_bayer_s0", "typical+RGGB", 0, 3, lambda: S.head(650.0)))
     out.append(("plane_tilt_bayer_s0", "typical+RGGB", 0, 3, lambda: S.plane(650.0, (0.0, 30.0))))
     out.append(("step_bayer_s0", "typical+RGGB", 0, 3, lambda: S.step(650.0, 40.0)))
+    # the real face mesh (../shared/data/fran_face, not part of the project): when it is there
+    if S.FRAN_PATH.is_file():
+        for seed, yaw in ((0, 0.0), (1, 20.0), (2, -15.0)):
+            out.append((f"fran_face_y{yaw:+.0f}_s{seed}", "typical", seed, 3,
+                        lambda yaw=yaw: S.fran_face(distance_mm=650.0, yaw_deg=yaw)))
+        out.append(("fran_face_bayer_s0", "typical+RGGB", 0, 3, lambda: S.fran_face(distance_mm=650.0)))
     if quick:
         out = out[::3]
     return out
