@@ -573,46 +573,26 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
     col = np.full((H, W), np.nan, np.float32)
     xs = np.empty(W + 2, np.float64)
     cs = np.empty(W + 2, np.float64)
+    js = np.empty(W + 2, np.int64)
     ns = seg_row.shape[0]
     # first and last located interval of every segment (NaN: fewer than two located boundaries)
     sp_first = np.full(ns, np.nan)
     sp_last = np.full(ns, np.nan)
     if contact_ratio > 0:
         for s in range(ns):
-            a = np.nan
-            for j in range(seg_j0[s], seg_j1[s]):
-                x = j_x[j]
-                if np.isnan(x):
-                    continue
-                if not np.isnan(a) and x > a + 0.05:
-                    sp_first[s] = x - a
-                    break
-                a = x
-            b = np.nan
-            for j in range(seg_j1[s] - 1, seg_j0[s] - 1, -1):
-                x = j_x[j]
-                if np.isnan(x):
-                    continue
-                if not np.isnan(b) and x < b - 0.05:
-                    sp_last[s] = b - x
-                    break
-                b = x
+            n = _located(j_x, seg_j0[s], seg_j1[s], xs, js)
+            if n >= 2:
+                sp_first[s] = xs[1] - xs[0]
+                sp_last[s] = xs[n - 1] - xs[n - 2]
     for s in range(ns):
         if not seg_ok[s]:
             continue
         v = seg_row[s]
-        n = 0
-        for j in range(seg_j0[s], seg_j1[s]):
-            x = j_x[j]
-            if np.isnan(x):
-                continue
-            if n > 0 and x <= xs[n - 1] + 0.05:
-                continue
-            xs[n] = x
-            cs[n] = j_bnd[j] * stripe_px - 0.5
-            n += 1
+        n = _located(j_x, seg_j0[s], seg_j1[s], xs, js)
         if n < 2:
             continue
+        for i in range(n):
+            cs[i] = j_bnd[js[i]] * stripe_px - 0.5
         crow = col[v]
         u = seg_u0[s]
         u_end = seg_u1[s]
@@ -653,6 +633,24 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
                     crow[u] = c0 + (u - x0) * slope
                 u += 1
     return col
+
+
+@njit(cache=True, nogil=True)
+def _located(j_x, j0, j1, xs, js):
+    # the located boundaries j0 .. j1-1 of a segment in increasing order (a boundary not at least
+    # 0.05 px right of the last one kept is dropped) into xs, their junction indices into js;
+    # returns their count
+    n = 0
+    for j in range(j0, j1):
+        x = j_x[j]
+        if np.isnan(x):
+            continue
+        if n > 0 and x <= xs[n - 1] + 0.05:
+            continue
+        xs[n] = x
+        js[n] = j
+        n += 1
+    return n
 
 
 @njit(cache=True, nogil=True)
