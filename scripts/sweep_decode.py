@@ -204,11 +204,15 @@ def main(argv=None) -> int:
         name, _, val = item.partition("=")
         fields = DecodeParams.__dataclass_fields__
         cur = getattr(DecodeParams(), name, None) if name in fields else None
-        optional = name in fields and cur is None and "float" in str(fields[name].type)   # e.g. the blur
+        typ = str(fields[name].type) if name in fields else ""
+        optional = name in fields and cur is None and ("float" in typ or "int" in typ)   # the blur, the balance window
         if not (optional or isinstance(cur, (int, float))) or isinstance(cur, bool) or not val:
             raise GBError(f"--decode {item!r}: expected NAME=VALUE with NAME a numeric field of "
                           "gbscan.decode.DecodeParams")
-        dover[name] = float(val) if optional else type(cur)(float(val))
+        if optional:
+            dover[name] = int(float(val)) if typ.startswith("int") else float(val)
+        else:
+            dover[name] = type(cur)(float(val))
     params = DecodeParams(unwrap=UnwrapParams(**over), **dover)
     scenes = [s for s in scene_list(args.quick) if not args.only or args.only in s[0]]
     if sigmas:
