@@ -38,6 +38,16 @@ def size_arg(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 1024x768, got '{text}'") from None
 
 
+def add_bayer_argument(p) -> None:
+    """``--bayer PATTERN`` of the simulators and the study scripts: a colour camera with that Bayer
+    mosaic (``gbscan.sim.Conditions.bayer``); default "" (full RGB per pixel)."""
+    from .sim.presets import BAYER_PATTERNS
+
+    p.add_argument("--bayer", default="", choices=BAYER_PATTERNS, metavar="PATTERN",
+                   help=f"a colour camera with this Bayer mosaic ({', '.join(BAYER_PATTERNS)}), demosaiced by "
+                        "OpenCV; default: full RGB per pixel, like the paper's 3-CCD camera")
+
+
 def run_cli(prog: str, description: str, package: str, stages: list[str], argv=None) -> int:
     parser = _Parser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     from gbscan import __version__

@@ -117,8 +117,8 @@ class UnwrapParams:
         one) sat on the rule's edge, and big regions flipped in and out with the blur (moving frame
         8: a 9900-px panel, runner-up 682 px worse than the best, margin 691.5 px).  1.5 events
         rules out any single misread marker stripe.  Sweep (``scripts/sweep_decode.py``, 44 scenes):
-        reported 83.20 -> 84.41 %, no index error added (the wrong pixels it adds are a linked
-        14-px fragment half a stripe off at a horizontal silhouette).
+        reported 83.20 -> 83.89 %, no index error added (the 7 wrong pixels it adds are a linked
+        65-px fragment of a Bayer frame, half a stripe off under a horizontal crease).
     max_mismatch : largest acceptable mismatch of the best offset, as a fraction of the evidence.
     conflict_run_px : a run of at least this many px whose marker/non-marker colour contradicts its
         region's offset is a disagreement (:func:`marker_conflicts`).

@@ -136,8 +136,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0", help="comma-separated render seeds (default 0)")
     ap.add_argument("--preset", default="typical", choices=("clean", "typical", "hard"))
     ap.add_argument("--out", help="folder for the coverage pictures (created)")
-    ap.add_argument("--bayer", default="", choices=("", "RGGB", "BGGR", "GRBG", "GBRG"),
-                    help="render through this colour filter mosaic, demosaiced (default: full RGB per pixel)")
+    from gbscan.cli_common import add_bayer_argument
+
+    add_bayer_argument(ap)
     args = ap.parse_args(argv)
     from gbscan import sim
     from gbscan.errors import GBError

@@ -21,8 +21,9 @@ def main(argv=None) -> int:
     ap.add_argument("--widths", default="4,6,8,10,12")
     ap.add_argument("--scenes", default="plane,sphere")
     ap.add_argument("--preset", default="typical")
-    ap.add_argument("--bayer", default="", choices=("", "RGGB", "BGGR", "GRBG", "GBRG"),
-                    help="render through this colour filter mosaic, demosaiced (default: full RGB per pixel)")
+    from gbscan.cli_common import add_bayer_argument
+
+    add_bayer_argument(ap)
     args = ap.parse_args(argv)
     import dataclasses
 

@@ -22,14 +22,14 @@ def _board_arg(text: str) -> tuple[int, int]:
 
 
 def add_arguments(p):
+    from gbscan.cli_common import add_bayer_argument
+
     p.add_argument("outdir", help="session folder to write (created if missing)")
     p.add_argument("--poses", type=int, default=12, help="number of board poses (default 12)")
     p.add_argument("--preset", default="typical", choices=["clean", "typical", "hard"],
                    help="imaging conditions (default typical)")
     p.add_argument("--seed", type=int, default=0, help="random seed for poses and noise (default 0)")
-    p.add_argument("--bayer", default="", choices=["RGGB", "BGGR", "GRBG", "GBRG"], metavar="PATTERN",
-                   help="a colour camera with this Bayer mosaic (RGGB, BGGR, GRBG, GBRG), demosaiced by OpenCV; "
-                        "default: full RGB per pixel, like the paper's 3-CCD camera")
+    add_bayer_argument(p)
     p.add_argument("--board", type=_board_arg, default=(9, 7), metavar="COLSxROWS",
                    help="inner corners of the board (default 9x7)")
     p.add_argument("--square-mm", type=float, default=20.0,

@@ -13,14 +13,14 @@ SCENES = ["plane", "sphere", "head", "step", "multi", "board", "face"]
 
 
 def add_arguments(p):
+    from gbscan.cli_common import add_bayer_argument
+
     p.add_argument("scene", choices=SCENES, metavar="SCENE", help="one of " + ", ".join(SCENES))
     p.add_argument("-o", "--output", required=True, help="output PNG (camera image, RGB)")
     p.add_argument("--preset", default="typical", choices=["clean", "typical", "hard"],
                    help="imaging conditions (default typical)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    p.add_argument("--bayer", default="", choices=["RGGB", "BGGR", "GRBG", "GBRG"], metavar="PATTERN",
-                   help="a colour camera with this Bayer mosaic (RGGB, BGGR, GRBG, GBRG), demosaiced by OpenCV; "
-                        "default: full RGB per pixel, like the paper's 3-CCD camera")
+    add_bayer_argument(p)
     p.add_argument("--distance-mm", type=float, default=650.0, help="scene distance in mm (default 650)")
     p.add_argument("--truth", help="also write the ground truth to this .npz")
     p.add_argument("--frame", help="projector frame PNG (default: the single-shot pattern)")

@@ -34,6 +34,10 @@ import numpy as np
 from ..errors import GBError
 
 
+#: Colour filter mosaics ``Conditions.bayer`` takes, named by the sensor's top-left 2x2, row by row
+BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+
+
 def _m(rows):
     return tuple(tuple(float(v) for v in r) for r in rows)
 
@@ -77,7 +81,7 @@ class Conditions:
                      "full_well_e", "read_noise_dn", "vignetting"):
             if float(getattr(self, name)) < 0:
                 raise GBError(f"condition {name} must be >= 0, got {getattr(self, name)}")
-        if self.bayer not in ("", "RGGB", "BGGR", "GRBG", "GBRG"):
+        if self.bayer not in ("",) + BAYER_PATTERNS:
             raise GBError(f"bayer must be '' or one of RGGB, BGGR, GRBG, GBRG, got {self.bayer!r}")
         object.__setattr__(self, "crosstalk", _m(c))
         object.__setattr__(self, "albedo_gain_rgb", tuple(float(v) for v in np.broadcast_to(self.albedo_gain_rgb, 3)))
