@@ -552,7 +552,7 @@ def fit_junctions(j_x, seg_j0, seg_j1, coef):
 
 @njit(cache=True, nogil=True)
 def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j_x, j_bnd, stripe_px,
-                        extrapolate, contact_ratio=0.0):
+                        extrapolate, contact_ratio=0.0, end_fit=0):
     """Continuous projector column of every pixel of the accepted segments.
 
     Between two consecutive boundaries at camera positions ``x_k < x_{k+1}`` with projector columns
@@ -569,6 +569,14 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
     edge cuts may carry the other surface's colours (mixed pixels, aliased stripes of a surface
     seen at grazing incidence, a colour camera's demosaicing).  Segments split on one surface
     (a misclassified pixel) keep their spacing and are extrapolated as before.
+
+    ``end_fit`` >= 3: the pixels beyond an end of a segment with at least that many located
+    boundaries are extrapolated with the least-squares quadratic of column against camera position
+    through its ``end_fit`` boundaries at that end (:func:`_end_quadratic`) instead of the end
+    interval's straight line: near a silhouette the stripes widen or narrow from boundary to
+    boundary, which the straight line misses (it always errs the same way), and one located
+    position is noisier than the fit.  Where the quadratic's slope at the pixel leaves
+    [1/2, 2] times the straight line's (a fit bent by a stray boundary) the straight line is used.
     """
     col = np.full((H, W), np.nan, np.float32)
     xs = np.empty(W + 2, np.float64)
@@ -593,6 +601,12 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
             continue
         for i in range(n):
             cs[i] = j_bnd[js[i]] * stripe_px - 0.5
+        # least-squares quadratics of the end boundaries (ok flag 0: the straight line)
+        fl_ok, fl_a, fl_b, fl_q = 0, 0.0, 0.0, 0.0
+        fr_ok, fr_a, fr_b, fr_q = 0, 0.0, 0.0, 0.0
+        if end_fit >= 3 and n >= end_fit:
+            fl_ok, fl_a, fl_b, fl_q = _end_quadratic(xs, cs, 0, end_fit, xs[0])
+            fr_ok, fr_a, fr_b, fr_q = _end_quadratic(xs, cs, n - end_fit, end_fit, xs[n - 1])
         crow = col[v]
         u = seg_u0[s]
         u_end = seg_u1[s]
@@ -620,7 +634,7 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
             # pixels left of x0 (first interval only), then inside [x0, x1], then right of x1
             while u <= last and u < x0:
                 if not (x0 - u > reach):
-                    crow[u] = c0 + (u - x0) * slope
+                    crow[u] = _end_value(fl_ok, fl_a, fl_b, fl_q, u - x0, c0 + (u - x0) * slope, slope)
                 u += 1
             mid = min(last, np.int64(np.floor(x1)))
             if u <= mid:
@@ -630,9 +644,56 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
                 u = mid + 1
             while u <= last:
                 if not (u - x1 > reach):
-                    crow[u] = c0 + (u - x0) * slope
+                    lin = c0 + (u - x0) * slope
+                    crow[u] = _end_value(fr_ok, fr_a, fr_b, fr_q, u - x1, lin, slope) if k == n - 2 else lin
                 u += 1
     return col
+
+
+@njit(cache=True, nogil=True)
+def _end_quadratic(xs, cs, i0, m, x_ref):
+    # least-squares c = a + b t + q t^2, t = x - x_ref, through the m points xs/cs[i0 : i0 + m]
+    # (normal equations, Cramer's rule); returns (ok, a, b, q), ok 0 when singular
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    s4 = 0.0
+    y0 = 0.0
+    y1 = 0.0
+    y2 = 0.0
+    for i in range(i0, i0 + m):
+        t = xs[i] - x_ref
+        t2 = t * t
+        c = cs[i]
+        s0 += 1.0
+        s1 += t
+        s2 += t2
+        s3 += t2 * t
+        s4 += t2 * t2
+        y0 += c
+        y1 += c * t
+        y2 += c * t2
+    det = s0 * (s2 * s4 - s3 * s3) - s1 * (s1 * s4 - s3 * s2) + s2 * (s1 * s3 - s2 * s2)
+    if not (abs(det) > 1e-9 * max(s4 * s4, 1.0)):
+        return 0, 0.0, 0.0, 0.0
+    a = (y0 * (s2 * s4 - s3 * s3) - s1 * (y1 * s4 - s3 * y2) + s2 * (y1 * s3 - s2 * y2)) / det
+    b = (s0 * (y1 * s4 - y2 * s3) - y0 * (s1 * s4 - s3 * s2) + s2 * (s1 * y2 - y1 * s2)) / det
+    q = (s0 * (s2 * y2 - s3 * y1) - s1 * (s1 * y2 - s2 * y1) + y0 * (s1 * s3 - s2 * s2)) / det
+    return 1, a, b, q
+
+
+@njit(cache=True, nogil=True)
+def _end_value(ok, a, b, q, t, lin, slope):
+    # an extrapolated column from an end quadratic at t px past the end boundary, or ``lin`` (the
+    # straight line of slope ``slope``) when there is none or its slope at t is not within a
+    # factor 2 of the straight line's
+    if ok == 0:
+        return lin
+    d = b + 2.0 * q * t
+    if not (d >= 0.5 * slope and d <= 2.0 * slope):
+        return lin
+    return a + (b + q * t) * t
 
 
 @njit(cache=True, nogil=True)

@@ -1,11 +1,13 @@
 """Where do the lit pixels of a curved object go?  Scan simulated frames and print a breakdown.
 
     python scripts/coverage_study.py [--scenes sphere,head] [--seeds 0] [--preset typical] [--out DIR]
+                                     [--yaw-deg DEG] [--decode-param NAME=VALUE ...]
 
 Scans each frame with the true calibration (``gbscan.scan.Scanner``, default decoder and cleaning)
 and prints, over the lit non-edge pixels (the accuracy targets' denominator):
 
-* kept %, depth RMS (mm) and the worst kept point's 3D error (mm);
+* kept %, depth RMS (mm) and the worst kept point's 3D error (mm; on depth-edge pixels to the
+  nearest of the 3x3 true points, :func:`gbscan.sim.point_errors_mm`, as the tests count it);
 * kept % by camera and projector incidence of the true surface (``gbscan.sim.incidence_deg``):
   stripes arrive dim and compressed at grazing projector incidence, edge-on at grazing camera
   incidence, so this splits what the decoder could do better from what the geometry denies;
@@ -14,6 +16,9 @@ and prints, over the lit non-edge pixels (the accuracy targets' denominator):
 * the ceiling: what a decoder would keep that got every pixel within 70 / 75 / 80 / 85 degrees of
   both and none beyond (the target's 95 % asks for pixels beyond the angle where the ceiling
   reaches it).
+
+``--decode-param NAME=VALUE`` scans with a decoder parameter off its default (compare a change:
+run once with and once without); ``--yaw-deg`` turns the head / the real face (``fran_face``).
 
 ``--bayer RGGB`` renders through a colour filter mosaic and OpenCV's demosaicing (most colour
 cameras) instead of full RGB per pixel (the paper's 3-CCD camera).
@@ -25,6 +30,7 @@ degrees) darker, with a legend.
 from __future__ import annotations
 
 import argparse
+import inspect
 import sys
 from pathlib import Path
 
@@ -34,7 +40,8 @@ GRAZING_DEG = 70.0
 BINS_DEG = (0, 40, 60, 70, 75, 80, 90)
 
 
-def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "") -> dict:
+def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", decode_params=None,
+          yaw_deg: float | None = None) -> dict:
     from gbscan import sim
     from gbscan.calibfile import calibration_from_rig
     from gbscan.decode import REASONS
@@ -47,13 +54,14 @@ def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "") 
 
     print(f"rendering {name} (seed {seed}, {preset}{', ' + bayer if bayer else ''}) ...", file=sys.stderr, flush=True)
     cond = dataclasses.replace(sim.preset(preset), bayer=bayer)
-    r = sim.render(rig, getattr(sim.scenes, name)(), render_pattern(spec), cond, seed=seed)
-    s = Scanner(calibration_from_rig(rig, spec)).scan(r.image)
+    scene = getattr(sim.scenes, name)(**({} if yaw_deg is None else {"yaw_deg": yaw_deg}))
+    r = sim.render(rig, scene, render_pattern(spec), cond, seed=seed)
+    s = Scanner(calibration_from_rig(rig, spec), decode_params=decode_params).scan(r.image)
     P = r.point.astype(np.float64)
     good = r.lit & ~r.depth_edge & np.isfinite(P[..., 2])
     kept = good & s.valid
     dz = (s.xyz[..., 2] - P[..., 2])[kept]
-    err = np.linalg.norm(s.xyz[s.valid] - P[s.valid], axis=1)
+    err = sim.point_errors_mm(r, s.xyz, s.valid)[s.valid]   # depth-edge pixels: the nearest of 3x3 truths
     cam, proj = sim.incidence_deg(rig, r)
     facing = good & (cam < GRAZING_DEG) & (proj < GRAZING_DEG)
     mask = s.stripemap.mask
@@ -136,6 +144,10 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0", help="comma-separated render seeds (default 0)")
     ap.add_argument("--preset", default="typical", choices=("clean", "typical", "hard"))
     ap.add_argument("--out", help="folder for the coverage pictures (created)")
+    ap.add_argument("--yaw-deg", type=float, help="turn the scenes that take a yaw (head, fran_face) by this much")
+    ap.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
+                    help="a gbscan.decode.DecodeParams field other than the default (repeatable), "
+                         "e.g. extrapolate_fit=0")
     from gbscan.cli_common import add_bayer_argument
 
     add_bayer_argument(ap)
@@ -152,17 +164,28 @@ def main(argv=None) -> int:
     for n in names:
         if not callable(getattr(sim.scenes, n, None)):
             ap.error(f"--scenes: no simulated scene {n!r} in gbscan.sim.scenes")
+        if args.yaw_deg is not None and "yaw_deg" not in inspect.signature(getattr(sim.scenes, n)).parameters:
+            ap.error(f"--yaw-deg: scene {n!r} takes no yaw")
+    from gbscan.commands.decode import params_from_pairs
+    from gbscan.decode import DecodeParams
+
+    try:
+        decode_params = params_from_pairs(DecodeParams, args.decode_param, "--decode-param")
+    except GBError as e:
+        ap.error(str(e))
     out = None
     if args.out:
         try:
             out = make_dir(args.out, "--out")
         except GBError as e:
             ap.error(str(e))
-    print(f"# coverage study, paper rig, preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}, "
-          "default decoder and cleaning")
+    dec = "default decoder" if decode_params is None else "decoder " + ", ".join(args.decode_param)
+    yaw = "" if args.yaw_deg is None else f", yaw {args.yaw_deg:g} deg"
+    print(f"# coverage study, paper rig, preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}{yaw}, "
+          f"{dec}, default cleaning")
     for name in names:
         for seed in seeds:
-            res = study(name, seed, args.preset, out, args.bayer)
+            res = study(name, seed, args.preset, out, args.bayer, decode_params, args.yaw_deg)
             if "picture" in res:
                 print(f"   wrote {res['picture']}")
     return 0

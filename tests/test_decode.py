@@ -479,13 +479,14 @@ def test_sphere_rims_masked_not_biased():
     assert s["index_ok"] == 1.0 and s["coverage"] > 0.88, s
     assert 0 < rim_cost < 0.05 and sm.stats["reasons"]["rim"] == (sm.mask == RIM).sum()
     # the rule is what removes the biased pixels (the pull grows with the blur: measured with the
-    # fixed 2 px blur used before the automatic one, which picks 1 px here)
+    # fixed 2 px blur used before the automatic one, which picks 1 px here): without it the bound
+    # fails (3.8 px with the quadratic end extrapolation, 4.3 px with the straight line)
     assert sm.stats["blur_sigma_along_px"] == 1.0
     sm2 = decode(r.image, PatternSpec(), DecodeParams(**SIGMA2))
     sm0 = decode(r.image, PatternSpec(), DecodeParams(**{**SIGMA2, "rim_bias_px": 0, "rim_end_px": 0}))
     ok0 = sm0.valid & np.isfinite(truth) & ~r.depth_edge
     ok2 = sm2.valid & np.isfinite(truth) & ~r.depth_edge
-    assert np.abs(sm0.column - truth)[ok0].max() > 4.0 and np.abs(sm2.column - truth)[ok2].max() < 3.5
+    assert np.abs(sm0.column - truth)[ok0].max() > 3.5 and np.abs(sm2.column - truth)[ok2].max() < 3.5
 
 
 

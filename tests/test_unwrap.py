@@ -880,3 +880,67 @@ def test_interpolate_columns_does_not_extrapolate_across_a_depth_edge_contact(sp
         assert np.all(np.isnan(col[a_end])) and np.all(np.isnan(col[b_start]))
     else:
         np.testing.assert_array_equal(col, ref)
+
+
+def _quadratic_row(q: float, n: int = 9, x0: float = 10.5):
+    """One row, one segment whose boundary k (column 8 k - 0.5) sits where the column
+    c(x) = 8 (x - x0) / 4 + q (x - x0)^2 - 0.5 reaches it: stripes that narrow (q > 0) or widen
+    along the row, as toward a silhouette.  Returns (W, seg, j_x, j_bnd, c) with c the exact column."""
+    k = np.arange(n, dtype=np.float64)
+    t = (-2.0 + np.sqrt(4.0 + 4.0 * q * 8.0 * k)) / (2.0 * q) if q else 4.0 * k
+    j_x = x0 + t
+    W = int(np.ceil(j_x[-1])) + 6
+
+    def c(x):
+        return 2.0 * (x - x0) + q * (x - x0) ** 2 - 0.5
+
+    seg = (np.zeros(1, np.int32), np.array([int(x0) - 5], np.int32), np.array([W - 1], np.int32),
+           np.array([0], np.int32), np.array([n], np.int32))
+    return W, seg, j_x, k.copy(), c
+
+
+@pytest.mark.parametrize("q", [0.05, -0.01, 0.0])
+def test_interpolate_columns_extrapolates_ends_with_the_boundaries_quadratic(q):
+    """DecodeParams.extrapolate_fit: beyond a segment's end boundary the column follows the
+    least-squares quadratic of its last 5 boundaries -- exact on a quadratic column (stripes that
+    narrow or widen steadily toward a silhouette), where the end interval's straight line errs,
+    always the same way; inside the boundaries nothing changes."""
+    from gbscan import kernels
+
+    W, seg, j_x, j_bnd, c = _quadratic_row(q)
+    ok = np.ones(1, np.uint8)
+    fit = kernels.interpolate_columns(1, W, *seg, ok, j_x, j_bnd, 8.0, 0.75, 0.0, 5)[0]
+    line = kernels.interpolate_columns(1, W, *seg, ok, j_x, j_bnd, 8.0, 0.75, 0.0, 0)[0]
+    u = np.arange(W, dtype=np.float64)
+    ends = np.isfinite(line) & ((u < j_x[0]) | (u > j_x[-1]))
+    assert ends.sum() >= 4 and np.array_equal(np.isfinite(fit), np.isfinite(line))
+    np.testing.assert_allclose(fit[ends], c(u[ends]), atol=1e-3)
+    inside = np.isfinite(line) & ~ends
+    np.testing.assert_array_equal(fit[inside], line[inside])
+    if q:
+        assert np.abs(line[ends] - c(u[ends])).max() > 0.1   # the straight line misses the bend
+
+
+def test_interpolate_columns_end_fit_falls_back_to_the_straight_line():
+    """A stray boundary that bends the end quadratic (its slope at the pixel more than a factor 2
+    off the end interval's) leaves the straight line; segments with fewer boundaries than the fit
+    use the straight line too."""
+    from gbscan import kernels
+
+    _, seg, j_x, j_bnd, c = _quadratic_row(0.0)
+    j_x = j_x.copy()
+    j_x[-1] += 6.0           # the end boundary located 6 px off: the fit's slope falls below half the line's
+    W = int(np.ceil(j_x[-1])) + 9
+    seg = (seg[0], seg[1], np.array([W - 1], np.int32), seg[3], seg[4])
+    ok = np.ones(1, np.uint8)
+    fit = kernels.interpolate_columns(1, W, *seg, ok, j_x, j_bnd, 8.0, 0.75, 0.0, 5)[0]
+    line = kernels.interpolate_columns(1, W, *seg, ok, j_x, j_bnd, 8.0, 0.75, 0.0, 0)[0]
+    right = np.arange(int(np.ceil(j_x[-1] + 1.0)), W)   # a pixel or more past it (the ratio falls with t)
+    right = right[np.isfinite(line[right])]
+    assert right.size >= 4
+    np.testing.assert_array_equal(fit[right], line[right])
+    # four boundaries, a fit of five: the straight line at both ends
+    W4, seg4, j4, b4, _ = _quadratic_row(0.05, n=4)
+    f4 = kernels.interpolate_columns(1, W4, *seg4, ok, j4, b4, 8.0, 0.75, 0.0, 5)[0]
+    l4 = kernels.interpolate_columns(1, W4, *seg4, ok, j4, b4, 8.0, 0.75, 0.0, 0)[0]
+    np.testing.assert_array_equal(f4, l4)
