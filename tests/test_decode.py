@@ -14,7 +14,8 @@ from gbscan.pattern import PatternSpec, render_pattern
 #: The decoder as the regression scenarios below were found with: a fixed 2 px blur and the rim
 #: rules tuned for it (before ``blur_sigma_along_px=None``, the automatic blur, became the default).
 #: Each scenario test checks its mechanism under these and the defaults' result on the same frame.
-SIGMA2 = {"blur_sigma_along_px": 2.0, "rim_guard_px": 2, "rim_end_px": 1}
+#: (One end row, as then: the automatic ``rim_end_rows`` would take the sigma, 2 rows.)
+SIGMA2 = {"blur_sigma_along_px": 2.0, "rim_guard_px": 2, "rim_end_px": 1, "rim_end_rows": 1}
 
 def test_motion_kernel_is_normalised_and_oriented():
     k0 = motion_kernel(2.0, 0.0, 0.0)
@@ -1192,14 +1193,15 @@ def test_auto_blur_follows_the_frame_snr():
 def test_auto_blur_beats_a_fixed_blur_on_both_presets():
     """What the automatic blur is for, on one frame per preset: against the fixed 2 px it replaced,
     more pixels on the sphere's typical frame with a lower column error, more on the hard plane;
-    neither reports a pixel on a wrong stripe."""
+    neither reports a pixel on a wrong stripe.  Both with the end rows the blur asks for (the
+    automatic ``rim_end_rows``): hard plane 80.1 against 77.4 % (82.7 / 79.1 with one end row)."""
     for scene, preset, kw in (("sphere", "typical", {}), ("plane", "hard", {"distance_mm": 650})):
         r = render(scene, preset, **kw)
         auto = scores(decode(r.image, PatternSpec()), r)
-        fixed = scores(decode(r.image, PatternSpec(), DecodeParams(**SIGMA2)), r)
+        fixed = scores(decode(r.image, PatternSpec(), DecodeParams(**{**SIGMA2, "rim_end_rows": None})), r)
         print(scene, preset, "auto", auto, "fixed", fixed)
         assert auto["index_ok"] == 1.0 and fixed["index_ok"] == 1.0
-        assert auto["coverage"] > fixed["coverage"] + (0.01 if preset == "typical" else 0.03), (auto, fixed)
+        assert auto["coverage"] > fixed["coverage"] + (0.01 if preset == "typical" else 0.02), (auto, fixed)
         if preset == "typical":
             assert auto["rms_px"] < fixed["rms_px"], (auto, fixed)
 
@@ -1267,7 +1269,9 @@ def test_weld_across_an_unlocated_boundary_is_cut(scene, sigma_px, wrong_without
     panel's region, 114 px 28 stripes off; the multi-object scene at 760 mm (supersample 3, seed 1)
     at 1.75 px: a sphere patch welded into the object below it, 229 px 20 stripes off (its
     bridge is 1.32 x the spacing beside it).  ``UnwrapParams.bridge_ratio`` cuts the row there:
-    0 wrong pixels, and more reported (the welds no longer split the regions' markers)."""
+    0 wrong pixels, and more reported (the welds no longer split the regions' markers).  (With
+    one end row, as found: the automatic end rows, 2 at 2.5 px, mask 35 of frame 5's welded
+    pixels as well.)"""
     import dataclasses
 
     from gbscan.unwrap import UnwrapParams
@@ -1277,9 +1281,10 @@ def test_weld_across_an_unlocated_boundary_is_cut(scene, sigma_px, wrong_without
     else:
         cond = dataclasses.replace(sim.preset("typical"), supersample=3)
         r = sim.render(sim.paper_rig(), sim.scenes.multi_object(760.0), render_pattern(PatternSpec()), cond, seed=1)
-    sm = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px))
-    sm0 = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px,
+    sm = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px, rim_end_rows=1))
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px, rim_end_rows=1,
                                                       unwrap=UnwrapParams(bridge_ratio=0.0)))
+    assert _wrong_off_edges(decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px)), r) == 0
     assert _wrong_off_edges(sm0, r) > wrong_without  # the weld is there without the rule
     assert _wrong_off_edges(sm, r) == 0
     assert sm.stats["unlocated_cuts"] > 0 and sm0.stats["unlocated_cuts"] == 0
@@ -1294,13 +1299,15 @@ def test_short_fragment_hanging_from_one_lined_up_row_is_not_linked(frame, sigma
     line up 6-8 stripes apart; all its link votes come from that row, and the link was 6-8
     stripes off (6-8 wrong pixels off the depth edges, the rest on them).  A component of more
     than ``link_hang_rows`` = 5 rows hanging from one row of votes passes the slope test of
-    ``link_components`` (here the slope jumps, or cannot be measured): the fragment stays dropped."""
+    ``link_components`` (here the slope jumps, or cannot be measured): the fragment stays dropped.
+    (One end row, as found: the coverage floor is that setting's.)"""
     from gbscan.unwrap import UnwrapParams
 
     r = _moving_frame(650.0 + 5.0 * frame, frame)
-    sm = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px))
-    sm0 = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px,
+    sm = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px, rim_end_rows=1))
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px, rim_end_rows=1,
                                                       unwrap=UnwrapParams(link_hang_rows=0)))
+    assert _wrong_off_edges(decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px)), r) == 0
     assert _wrong_off_edges(sm0, r) >= 5  # linked without the rule
     assert _wrong_off_edges(sm, r) == 0
     assert sm.stats["link_refused_slope"] + sm.stats["link_refused_unmeasured"] > \
@@ -1315,11 +1322,12 @@ def test_panel_with_a_clear_slope_step_is_not_linked_through_one_row():
     wall along one row where the stripes line up 8 stripes apart; its slope along the row is 11 %
     below the wall's (three times ``link_slope_tol``) but the fitted boundaries spread the votes:
     z = 12.3, under the ``link_slope_z`` of 15, and the link was 8 stripes off (over 300 wrong
-    pixels).  The near test at ``link_slope_z_near`` = 10 refuses it."""
+    pixels).  The near test at ``link_slope_z_near`` = 10 refuses it.  (One end row, as found.)"""
     from gbscan.unwrap import UnwrapParams
 
     r = _moving_frame(675.0, 5)
-    kw = {"blur_sigma_along_px": 3.0, "boundary_fit_half": 3}
+    assert _wrong_off_edges(decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=3.0)), r) == 0
+    kw = {"blur_sigma_along_px": 3.0, "boundary_fit_half": 3, "rim_end_rows": 1}
     sm = decode(r.image, PatternSpec(), DecodeParams(**kw))
     sm0 = decode(r.image, PatternSpec(), DecodeParams(**kw, unwrap=UnwrapParams(link_slope_z_near=15.0)))
     assert _wrong_off_edges(sm0, r) > 300

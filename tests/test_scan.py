@@ -451,6 +451,33 @@ def test_sim_no_point_off_by_3mm_after_cleaning(name):
 
 
 @pytest.mark.slow
+def test_sim_hard_multi_object_end_rows_follow_the_blur():
+    """Hard preset (the automatic blur takes 3 px): the blur carries a box's stripes past its
+    bottom silhouette onto the wall below, where one row of guard (the fixed ``rim_end_rows`` of
+    before) left a point 231 mm off what its pixel sees.  The automatic end rows (the sigma
+    rounded: 3 here) remove it; with one row it comes back."""
+    from gbscan import sim
+    from gbscan.decode import DecodeParams, guard_end_rows
+    from gbscan.pattern import render_pattern
+
+    rig, spec = sim.paper_rig(), PatternSpec()
+    r = sim.render(rig, sim.scenes.multi_object(), render_pattern(spec), sim.preset("hard"), seed=0)
+    cal = calibration_from_rig(rig, spec)
+    s = Scanner(cal).scan(r.image)
+    assert s.stripemap.stats["blur_sigma_along_px"] == 3.0
+    assert guard_end_rows(DecodeParams(blur_sigma_along_px=3.0)) == 3
+    assert guard_end_rows(DecodeParams(blur_sigma_along_px=1.0)) == 1
+    assert guard_end_rows(DecodeParams(blur_sigma_along_px=3.0, rim_end_rows=1)) == 1
+    err = sim.point_errors_mm(r, s.xyz, s.valid)
+    s1 = Scanner(cal, decode_params=DecodeParams(rim_end_rows=1)).scan(r.image)
+    err1 = sim.point_errors_mm(r, s1.xyz, s1.valid)
+    print(f"hard multi-object: worst {err.max():.2f} mm, {int((err > 3).sum())} > 3 mm "
+          f"(one end row: worst {err1.max():.1f} mm, {int((err1 > 3).sum())} > 3 mm)")
+    assert (err > 3).sum() == 0
+    assert (err1 > 3).sum() >= 1
+
+
+@pytest.mark.slow
 def test_sim_multi_object_gap_edges_remove_what_the_point_map_shows():
     """The gap-edge test removes about half of the points extended across silhouettes (> 3 mm off:
     108 -> 56 at seed 0 with the decoder's rim guard off) for ~0.1% of the lit non-edge pixels;
