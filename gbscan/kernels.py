@@ -552,7 +552,7 @@ def fit_junctions(j_x, seg_j0, seg_j1, coef):
 
 @njit(cache=True, nogil=True)
 def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j_x, j_bnd, stripe_px,
-                        extrapolate, contact_ratio=0.0, end_fit=0):
+                        extrapolate, contact_ratio=0.0, end_fit=0, contact_gap_px=1):
     """Continuous projector column of every pixel of the accepted segments.
 
     Between two consecutive boundaries at camera positions ``x_k < x_{k+1}`` with projector columns
@@ -563,7 +563,7 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
     dropped.  ``j_bnd`` is the boundary index (relative or absolute: the caller shifts).
 
     ``contact_ratio`` > 0: an end of a segment that touches the next segment of its row (at most
-    one pixel between their spans) is not extrapolated when the boundary spacing across the
+    ``contact_gap_px`` pixels between their spans) is not extrapolated when the boundary spacing across the
     contact jumps by more than this factor (last interval of one, first of the other; or either
     has fewer than two located boundaries): the two touch across a depth edge, where the run the
     edge cuts may carry the other surface's colours (mixed pixels, aliased stripes of a surface
@@ -611,10 +611,10 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
         u = seg_u0[s]
         u_end = seg_u1[s]
         if contact_ratio > 0:
-            if s > 0 and seg_row[s - 1] == v and seg_u1[s - 1] >= u - 2 and \
+            if s > 0 and seg_row[s - 1] == v and seg_u1[s - 1] >= u - 1 - contact_gap_px and \
                     _spacing_jump(sp_last[s - 1], sp_first[s], contact_ratio):
                 u = max(u, np.int64(np.ceil(xs[0])))
-            if s + 1 < ns and seg_row[s + 1] == v and seg_u0[s + 1] <= u_end + 2 and \
+            if s + 1 < ns and seg_row[s + 1] == v and seg_u0[s + 1] <= u_end + 1 + contact_gap_px and \
                     _spacing_jump(sp_last[s], sp_first[s + 1], contact_ratio):
                 u_end = min(u_end, np.int64(np.floor(xs[n - 1])))
         # per interval k: its pixels are those the per-pixel rule gives it (the largest k <= n-2

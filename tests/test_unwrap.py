@@ -944,3 +944,19 @@ def test_interpolate_columns_end_fit_falls_back_to_the_straight_line():
     f4 = kernels.interpolate_columns(1, W4, *seg4, ok, j4, b4, 8.0, 0.75, 0.0, 5)[0]
     l4 = kernels.interpolate_columns(1, W4, *seg4, ok, j4, b4, 8.0, 0.75, 0.0, 0)[0]
     np.testing.assert_array_equal(f4, l4)
+
+
+@pytest.mark.parametrize("gap_px, contact_gap_px, cut", [(2, 2, True), (3, 2, False), (2, 1, False), (1, 1, True)])
+def test_interpolate_columns_contact_gap(gap_px, contact_gap_px, cut):
+    """DecodeParams.contact_gap_px: two segments of a row with at most that many unlabelled pixels
+    between them touch (a Bayer camera's demosaicing leaves such a two-pixel gap at a silhouette);
+    across a spacing jump neither end is extrapolated then."""
+    from gbscan import kernels
+
+    W, seg, j_x, j_bnd = _two_segments(2.0, gap_px)
+    ok = np.ones(2, np.uint8)
+    col = kernels.interpolate_columns(1, W, *seg, ok, j_x, j_bnd, 8.0, 0.75, 1.35, 0, contact_gap_px)[0]
+    ref = kernels.interpolate_columns(1, W, *seg, ok, j_x, j_bnd, 8.0, 0.75, 0.0, 0, contact_gap_px)[0]
+    a_end = np.arange(27, 30)
+    assert np.all(np.isfinite(ref[a_end]))
+    assert np.all(np.isnan(col[a_end])) == cut and np.all(np.isfinite(col[a_end])) == (not cut)
