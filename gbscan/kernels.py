@@ -3294,9 +3294,9 @@ def vertical_votes(labels, seg, rel, n_seg):
 # -- decoder: rim guard (gbscan.decode.rim_guard) --------------------------------------------------
 @njit(cache=True, nogil=True, error_model="numpy")
 def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows_a, rows_b, ok_code, rim_code,
-                   flags):
+                   flags, a3=-1):
     """Mask ``rim_code`` the ``ok_code`` pixels within ``rows_a`` rows (same column) of a pixel
-    whose code is ``a1`` or ``a2``, or within ``rows_b`` rows of one whose code is in
+    whose code is ``a1`` or ``a2`` (or ``a3`` when >= 0), or within ``rows_b`` rows of one whose code is in
     ``[b_lo, b_hi]`` or equals ``b_extra``; sets column NaN, stripe -1, conf 0 there and returns
     their count (a negative row count disables its class).  The codes are read from the mask as
     given (pixels masked here do not extend the guard).  ``flags`` (H, W) uint8 scratch: bit 1
@@ -3304,6 +3304,7 @@ def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows
     (byte-wide loops that vectorise) decides, and the few hits are written."""
     H, W = mask.shape
     ua1, ua2 = np.uint8(a1), np.uint8(a2)
+    ua3 = np.uint8(a3) if a3 >= 0 else ua1   # an optional third code of class a
     ulo, uhi, uex = np.uint8(b_lo), np.uint8(b_hi), np.uint8(b_extra)
     uok = np.uint8(ok_code)
     one, two = np.uint8(1), np.uint8(2)
@@ -3312,7 +3313,7 @@ def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows
         frow = flags[v]
         for u in range(W):
             m = mrow[u]
-            fa = np.uint8((m == ua1) | (m == ua2))
+            fa = np.uint8((m == ua1) | (m == ua2) | (m == ua3))
             fb = np.uint8(((m >= ulo) & (m <= uhi)) | (m == uex))
             frow[u] = fa | (fb << one)
     reach = max(rows_a, rows_b, 0)

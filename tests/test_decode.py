@@ -14,8 +14,10 @@ from gbscan.pattern import PatternSpec, render_pattern
 #: The decoder as the regression scenarios below were found with: a fixed 2 px blur and the rim
 #: rules tuned for it (before ``blur_sigma_along_px=None``, the automatic blur, became the default).
 #: Each scenario test checks its mechanism under these and the defaults' result on the same frame.
-#: (One end row, as then: the automatic ``rim_end_rows`` would take the sigma, 2 rows.)
-SIGMA2 = {"blur_sigma_along_px": 2.0, "rim_guard_px": 2, "rim_end_px": 1, "rim_end_rows": 1}
+#: (One end row, as then: the automatic ``rim_end_rows`` would take the sigma, 2 rows; and the
+#: guard next to unindexed and isolated pixels only, not ``no_boundary`` ones.)
+SIGMA2 = {"blur_sigma_along_px": 2.0, "rim_guard_px": 2, "rim_end_px": 1, "rim_end_rows": 1,
+          "rim_guard_no_boundary": False}
 
 def test_motion_kernel_is_normalised_and_oriented():
     k0 = motion_kernel(2.0, 0.0, 0.0)
@@ -827,9 +829,20 @@ def test_rim_guard_masks_reported_rows_next_to_dropped_striped_surfaces():
     c2 = np.zeros((6, 3), np.float32)
     n2 = rim_guard(m2, c2, np.zeros((6, 3), np.int32), np.ones((6, 3), np.float32), 0, None, end_rows=1)
     assert n2 == 3 and m2[1, 0] == RIM and m2[3, 2] == m2[5, 2] == RIM and m2[2, 0] == OK and m2[2, 2] == OK
+    # no_boundary: pixels masked NO_BOUNDARY are a dropped surface too (rim_guard_no_boundary)
+    from gbscan.decode import NO_BOUNDARY
+
+    for on, want_n in ((False, 0), (True, 2)):
+        m3 = np.zeros((5, 2), np.uint8)
+        m3[2, 1] = NO_BOUNDARY
+        n3 = rim_guard(m3, np.zeros((5, 2), np.float32), np.zeros((5, 2), np.int32), np.ones((5, 2), np.float32), 1,
+                       None, no_boundary=on)
+        assert n3 == want_n and ((m3[1, 1] == RIM) and (m3[3, 1] == RIM)) == on and (m3[:, 0] == OK).all()
     for bad_rows in (-1, 1.5, True):
         with pytest.raises(GBError, match="rim_guard_px"):
             DecodeParams(rim_guard_px=bad_rows)
+    with pytest.raises(GBError, match="rim_guard_no_boundary"):
+        DecodeParams(rim_guard_no_boundary=1)
 
 
 # -- stage 1-3 row kernels against plain numpy (the arithmetic both paths share) -------------------
@@ -1193,12 +1206,14 @@ def test_auto_blur_follows_the_frame_snr():
 def test_auto_blur_beats_a_fixed_blur_on_both_presets():
     """What the automatic blur is for, on one frame per preset: against the fixed 2 px it replaced,
     more pixels on the sphere's typical frame with a lower column error, more on the hard plane;
-    neither reports a pixel on a wrong stripe.  Both with the end rows the blur asks for (the
-    automatic ``rim_end_rows``): hard plane 80.1 against 77.4 % (82.7 / 79.1 with one end row)."""
+    neither reports a pixel on a wrong stripe.  Both with the default rim rules (end rows over a
+    sigma, the guard next to ``no_boundary`` pixels too): hard plane 78.8 against 75.4 % (82.7 /
+    79.1 with one end row and the guard next to unindexed / isolated pixels only)."""
     for scene, preset, kw in (("sphere", "typical", {}), ("plane", "hard", {"distance_mm": 650})):
         r = render(scene, preset, **kw)
         auto = scores(decode(r.image, PatternSpec()), r)
-        fixed = scores(decode(r.image, PatternSpec(), DecodeParams(**{**SIGMA2, "rim_end_rows": None})), r)
+        fixed = scores(decode(r.image, PatternSpec(), DecodeParams(**{**SIGMA2, "rim_end_rows": None,
+                                                                       "rim_guard_no_boundary": True})), r)
         print(scene, preset, "auto", auto, "fixed", fixed)
         assert auto["index_ok"] == 1.0 and fixed["index_ok"] == 1.0
         assert auto["coverage"] > fixed["coverage"] + (0.01 if preset == "typical" else 0.02), (auto, fixed)
@@ -1300,13 +1315,14 @@ def test_short_fragment_hanging_from_one_lined_up_row_is_not_linked(frame, sigma
     stripes off (6-8 wrong pixels off the depth edges, the rest on them).  A component of more
     than ``link_hang_rows`` = 5 rows hanging from one row of votes passes the slope test of
     ``link_components`` (here the slope jumps, or cannot be measured): the fragment stays dropped.
-    (One end row, as found: the coverage floor is that setting's.)"""
+    (One end row and the guard next to unindexed / isolated pixels only, as found: the rim guard
+    now also stands next to ``no_boundary`` pixels and masks the fragment's top rows itself.)"""
     from gbscan.unwrap import UnwrapParams
 
     r = _moving_frame(650.0 + 5.0 * frame, frame)
-    sm = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px, rim_end_rows=1))
-    sm0 = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px, rim_end_rows=1,
-                                                      unwrap=UnwrapParams(link_hang_rows=0)))
+    found = {"blur_sigma_along_px": sigma_px, "rim_end_rows": 1, "rim_guard_no_boundary": False}
+    sm = decode(r.image, PatternSpec(), DecodeParams(**found))
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(**found, unwrap=UnwrapParams(link_hang_rows=0)))
     assert _wrong_off_edges(decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px)), r) == 0
     assert _wrong_off_edges(sm0, r) >= 5  # linked without the rule
     assert _wrong_off_edges(sm, r) == 0
