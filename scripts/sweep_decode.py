@@ -9,6 +9,8 @@ pixel with the simulator's truth (``r.proj_xy``):
 * ``wrong``: reported, off any depth edge, column more than half a stripe from the truth (the
   absolute stripe index is wrong, not just the sub-pixel position);
 * ``wrong_edge``: the same on depth-edge pixels (they mix two surfaces; counted apart);
+* ``col_rms``, ``>1px``: the sub-pixel accuracy, column error RMS (projector px) of the reported
+  non-edge pixels on their right stripe, and how many of them are more than 1 px off;
 * the wrong pixels grouped by region: size, offset error (stripes), how the region was indexed
   (markers / linked) and its index statistics (markers seen, evidence, mismatch, runner-up).
 
@@ -135,8 +137,10 @@ def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = 
 
     spec = PatternSpec()
     out = print if show else (lambda *a, **k: None)
-    tot = {"lit": 0, "reported": 0, "wrong": 0, "wrong_edge": 0, "bad_scenes": 0, "scenes": len(scenes)}
-    out(f"{'scene':26s} {'preset':12s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'ms':>6s}")
+    tot = {"lit": 0, "reported": 0, "wrong": 0, "wrong_edge": 0, "bad_scenes": 0, "scenes": len(scenes),
+           "sq_err": 0.0, "n_err": 0, "over_1px": 0}
+    out(f"{'scene':26s} {'preset':12s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'col_rms':>7s} "
+        f"{'>1px':>5s} {'ms':>6s}")
     for k, (name, preset, seed, ss, factory) in enumerate(scenes):
         t0 = time.perf_counter()
         image, truth, depth_edge, lit = load_or_render(name, preset, seed, ss, factory, cache)
@@ -148,13 +152,22 @@ def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = 
         cand = lit & ~depth_edge
         rep = int((sm.valid & cand).sum())
         counts, rows = wrong_regions(sm, truth, depth_edge, spec.stripe_px)
+        # sub-pixel accuracy: column error of the reported non-edge pixels on their right stripe
+        ok = sm.valid & cand & np.isfinite(truth)
+        e = (sm.column - truth)[ok]
+        e = e[np.abs(e) < spec.stripe_px / 2]
+        col_rms = float(np.sqrt(np.mean(e.astype(np.float64) ** 2))) if e.size else float("nan")
+        tot["sq_err"] += float(np.sum(e.astype(np.float64) ** 2))
+        tot["n_err"] += int(e.size)
+        tot["over_1px"] += int((np.abs(e) > 1.0).sum())
         tot["lit"] += int(cand.sum())
         tot["reported"] += rep
         tot["wrong"] += counts["wrong"]
         tot["wrong_edge"] += counts["wrong_edge"]
         tot["bad_scenes"] += int(counts["wrong"] + counts["wrong_edge"] > 0)
         out(f"{name:26s} {preset:12s} {100.0 * rep / max(cand.sum(), 1):9.2f} {counts['wrong']:6d} "
-            f"{counts['wrong_edge']:10d} {(t2 - t1) * 1e3:6.0f}", flush=True)
+            f"{counts['wrong_edge']:10d} {col_rms:7.3f} {int((np.abs(e) > 1.0).sum()):5d} {(t2 - t1) * 1e3:6.0f}",
+            flush=True)
         for d in rows:
             if d["wrong_px"] == d["edge_px"] and not edges:
                 continue  # depth-edge pixels only (they mix two surfaces): see --edges
@@ -223,8 +236,10 @@ def main(argv=None) -> int:
                   f"{tot['wrong_edge']:10d} {tot['bad_scenes']:>7d}/{tot['scenes']}", flush=True)
         return 0
     tot = sweep(params, scenes, cache, args.edges)
+    rms = (tot["sq_err"] / tot["n_err"]) ** 0.5 if tot["n_err"] else float("nan")
     print(f"{'TOTAL':26s} {'':12s} {100.0 * tot['reported'] / max(tot['lit'], 1):9.2f} {tot['wrong']:6d} "
-          f"{tot['wrong_edge']:10d}   scenes with wrong pixels: {tot['bad_scenes']}/{tot['scenes']}")
+          f"{tot['wrong_edge']:10d} {rms:7.3f} {tot['over_1px']:5d}   scenes with wrong pixels: "
+          f"{tot['bad_scenes']}/{tot['scenes']}")
     return 0
 
 

@@ -523,3 +523,24 @@ def test_gap_edge_flags_in_scan_and_batch():
         assert (c.max_gap_px, c.gap_near_px) == (0, 1), mod.__name__
         with pytest.raises(GBError, match="max_gap_px"):
             scan_cmd.clean_params_from_args(p.parse_args(head + ["--max-gap-px", "-2"]))
+
+
+def test_coverage_study_script_options(capsys):
+    """scripts/coverage_study.py (the figures README quotes): a decoder parameter off its default
+    and the yaw are applied and named in the header; bad ones are a usage error, not a traceback."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "coverage_study.py"
+    spec = importlib.util.spec_from_file_location("coverage_study", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    for argv, msg in ((["--scenes", "sphere", "--yaw-deg", "10"], "takes no yaw"),
+                      (["--scenes", "sphere", "--decode-param", "bogus=1"], "--decode-param"),
+                      (["--scenes", "sphere", "--decode-param", "extrapolate_fit=2"], "extrapolate_fit")):
+        with pytest.raises(SystemExit) as e:
+            mod.main(argv)
+        assert e.value.code == 2 and msg in capsys.readouterr().err
+    assert mod.main(["--scenes", "plane", "--decode-param", "extrapolate_fit=0"]) == 0
+    out = capsys.readouterr().out
+    assert "decoder extrapolate_fit=0" in out and "## plane, seed 0: kept" in out
