@@ -903,13 +903,19 @@ def _reason_stats(counts: np.ndarray) -> dict:
 
 
 def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(), *,
-           keep_stages: bool = False) -> StripeMap:
+           keep_stages: bool = False, stripe_range: np.ndarray | None = None) -> StripeMap:
     """Decode one camera frame of the green-blue stripe pattern.
 
     image_rgb : (H, W, 3) uint8 RGB (uint16 and float in [0, 1] are converted).
     pattern : the projected pattern (stripe width, markers).
     params : :class:`DecodeParams`.
     keep_stages : also return the intermediate images in ``StripeMap.stages`` (previews).
+    stripe_range : optional (2, H, W) float32, the absolute stripe indices (low, high; NaN: no
+        bound) each pixel can see inside the scanner's working volume -- a calibration and a depth
+        range give it (:meth:`gbscan.scan.Scanner.stripe_range`).  A prior for the indexing: it
+        never chooses a region's offset, it rules out runner-up offsets that would put the whole
+        region outside the volume, so regions whose few markers fit two far-apart offsets are
+        indexed; a region whose best offset lies outside is dropped ("outside the working volume").
 
     Stages 1-3 run fused (``kernels.balance_samples``: the colour balance's samples, then
     ``kernels.stream_frame``: linearise, blur and classify in one pass over the rows) when
@@ -934,6 +940,11 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     t0 = time.perf_counter()
     img = validate_image(image_rgb)
     H, W = img.shape[:2]
+    if stripe_range is not None:
+        stripe_range = np.asarray(stripe_range)
+        if stripe_range.shape != (2, H, W) or stripe_range.dtype != np.float32:
+            raise GBError(f"decode: stripe_range must be a (2, {H}, {W}) float32 array (low, high stripe per "
+                          f"pixel), got {stripe_range.dtype} {stripe_range.shape}")
     snr = None
     if params.blur_sigma_along_px is None:  # automatic: from this frame's stripe SNR
         sigma, snr = auto_blur_sigma(img, params)
@@ -994,7 +1005,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     t4 = time.perf_counter()
     ms["unwrap"] = (t4 - t3) * 1e3
     n_reg = int(un.region_px.size)
-    idx = uw.index_regions(cls.labels, un.relative, un.region, n_reg, pattern, params.unwrap)
+    idx = uw.index_regions(cls.labels, un.relative, un.region, n_reg, pattern, params.unwrap, stripe_range)
     # stretches of rows whose own markers contradict their region's offset (a surface welded in
     # across a depth edge): reported as unindexed.  finish_pixels keeps any non-zero input reason.
     _mark_spans(cls.reason, uw.marker_conflicts(cls.labels, un, idx, pattern, params.unwrap, cls.gn, cls.bn),

@@ -2252,17 +2252,22 @@ def region_histograms(labels, relative, region, n_reg):
 
 
 @njit(cache=True, nogil=True)
-def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px):
+def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, cstart, npx, frac):
     """The marker matched filter of :func:`gbscan.unwrap.index_regions` for every region, from
     :func:`region_histograms`: integer counts, the same sums as its ``np.correlate`` form.
 
     Per region ``k`` returns (all (n_reg,) int64): ``status`` 0 empty, 1 too thin (no relative
-    index with ``min_marker_px`` pixels), 2 no candidate offset, 3 scored; ``seen`` marker stripes
-    seen; for scored regions the ``offset`` (absolute - relative) of the best candidate (first
-    minimum), its ``evidence`` and ``mismatch`` and the ``runner_up`` (second smallest mismatch,
-    ``2**63 // 4`` when there is one candidate).  Candidate absolute index ``A`` of relative
-    ``rmin``: ``A + c0 >= -2``, ``A + c1 <= n_st + 1`` (``c0, c1`` the core's ends), ``A - rmin`` even;
-    positions outside the pattern mismatch every observation."""
+    index with ``min_marker_px`` pixels), 2 no candidate offset, 3 scored, 4 scored but the best
+    candidate is outside the working volume; ``seen`` marker stripes seen; for scored regions the
+    ``offset`` (absolute - relative) of the best candidate (first minimum), its ``evidence`` and
+    ``mismatch`` and the ``runner_up`` (smallest mismatch of the other candidates inside the
+    working volume, ``2**63 // 4`` when there is none: the prior never changes the best candidate,
+    it only rules out runner-ups).  A candidate is inside when it keeps at least ``frac`` of the
+    region's ``npx[k]`` bounded pixels inside their stripes (``cover``, :func:`region_offset_cover`;
+    every candidate is inside when ``npx[k]`` is 0: no prior).
+    Candidate absolute index ``A`` of relative ``rmin``: ``A + c0 >= -2``, ``A + c1 <= n_st + 1``
+    (``c0, c1`` the core's ends), ``A - rmin`` even; positions outside the pattern mismatch every
+    observation."""
     n_reg = rmin.shape[0]
     n_st = is_marker.shape[0]
     status = np.zeros(n_reg, np.int64)
@@ -2278,6 +2283,8 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px):
         if r1 < r0:
             continue
         span = r1 - r0 + 1
+        cand_A = np.empty(n_st + span + 2, np.int64)
+        cand_mis = np.empty(n_st + span + 2, np.int64)
         b0 = start[k]
         n_seen = 0
         c0 = -1
@@ -2299,7 +2306,6 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px):
         best_mis = big
         best_A = 0
         best_exp = 0
-        second = big
         n_cand = 0
         # A = absolute index of relative r0; the extended position i = A + span (pad = span)
         for A in range(-span, n_st + 1):
@@ -2318,22 +2324,78 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px):
                     exp += c + g
                 else:
                     mis += c
+            cand_A[n_cand] = A
+            cand_mis[n_cand] = mis
             n_cand += 1
             if mis < best_mis:
-                second = best_mis
                 best_mis = mis
                 best_A = A
                 best_exp = exp
-            elif mis < second:
-                second = mis
         if n_cand == 0:
             continue
-        status[k] = 3
+        second = big
+        need = frac * npx[k]
+        for i in range(n_cand):
+            if cand_A[i] != best_A and cand_mis[i] < second and \
+                    (npx[k] == 0 or cover[cstart[k] + cand_A[i] + span] >= need):
+                second = cand_mis[i]
+        inside = npx[k] == 0 or cover[cstart[k] + best_A + span] >= need
+        status[k] = 3 if inside else 4
         offset[k] = best_A - r0
         evidence[k] = sum_c + best_exp
         mismatch[k] = best_mis
-        runner[k] = second if n_cand > 1 else big
+        runner[k] = second
     return status, seen, offset, evidence, mismatch, runner
+
+
+@njit(cache=True, nogil=True)
+def region_offset_cover(region, relative, stripe_lo, stripe_hi, rmin, rmax, n_st, step=1):
+    """How many pixels of each region each candidate offset keeps inside their allowed stripes.
+
+    ``stripe_lo, stripe_hi`` (H, W) float32: the absolute stripe indices a pixel can see (NaN: no
+    bound; the pixel is not counted); ``rmin, rmax`` (n_reg,) the regions' relative index ranges
+    (:func:`region_histograms`).  Candidate ``A`` is the absolute index of relative ``rmin[k]``,
+    ``A`` in ``[-span, n_st]`` as in :func:`score_offsets`.  Returns flat ``cover`` (int64) with
+    region ``k``'s count for ``A`` at ``cstart[k] + A + span``, ``cstart`` (n_reg + 1,) and
+    ``npx`` (n_reg,) the region's pixels with bounds (every ``step``-th row and column: a sample
+    is enough for a fraction)."""
+    n_reg = rmin.shape[0]
+    cstart = np.zeros(n_reg + 1, np.int64)
+    for k in range(n_reg):
+        span = rmax[k] - rmin[k] + 1 if rmax[k] >= rmin[k] else 0
+        cstart[k + 1] = cstart[k] + (n_st + span + 2 if span > 0 else 0)
+    diff = np.zeros(cstart[n_reg] + 1, np.int64)
+    npx = np.zeros(n_reg, np.int64)
+    H, W = region.shape
+    for v in range(0, H, step):
+        for u in range(0, W, step):
+            k = region[v, u]
+            if k < 0:
+                continue
+            lo = stripe_lo[v, u]
+            hi = stripe_hi[v, u]
+            if np.isnan(lo) or np.isnan(hi):
+                continue
+            span = rmax[k] - rmin[k] + 1
+            d = relative[v, u] - rmin[k]
+            a = np.int64(np.floor(lo)) - d
+            b = np.int64(np.ceil(hi)) - d
+            if a < -span:
+                a = -span
+            if b > n_st:
+                b = n_st
+            npx[k] += 1
+            if a > b:
+                continue
+            diff[cstart[k] + a + span] += 1
+            diff[cstart[k] + b + span + 1] -= 1
+    cover = np.zeros(cstart[n_reg], np.int64)
+    for k in range(n_reg):
+        acc = 0
+        for i in range(cstart[k], cstart[k + 1]):
+            acc += diff[i]
+            cover[i] = acc
+    return cover, cstart, npx
 
 
 @njit(cache=True, nogil=True)

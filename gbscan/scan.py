@@ -200,6 +200,24 @@ class Scanner:
         """(width, height) of the frames this scanner accepts."""
         return self.camera.size
 
+    @property
+    def stripe_range(self) -> np.ndarray | None:
+        """(2, H, W) float32 absolute stripe indices (low, high) each pixel can see between the
+        cleaning's ``min_depth_mm`` and ``max_depth_mm`` (the working volume), one stripe of margin
+        either side; NaN where the ray meets the light planes edge-on in that range.  The decoder's
+        indexing prior (:func:`gbscan.decode.decode`'s ``stripe_range``).  None when the light
+        planes are not one pencil (a projector's: ``gbcal`` calibrations are), or when the range
+        lets every pixel see every stripe (the default 50 mm - 10 m): no prior then, at no cost.
+        Computed on first use."""
+        if "_stripe_range" not in self.__dict__:
+            sr = stripe_range_from_pencil(self.triangulator, float(self.pattern.stripe_px),
+                                          float(self.clean_params.min_depth_mm), float(self.clean_params.max_depth_mm))
+            if sr is not None and bool(np.all(np.nan_to_num(sr[0], nan=-1.0) <= 0)) and \
+                    bool(np.all(np.nan_to_num(sr[1], nan=np.inf) >= self.pattern.n_stripes - 1)):
+                sr = None  # every pixel may see every stripe (the default 50 mm - 10 m): no information
+            self._stripe_range = sr
+        return self._stripe_range
+
     def scan(self, image_rgb: np.ndarray, *, clean: bool = True, keep_stages: bool = False) -> Scan:
         """Decode, triangulate, clean one camera frame (H, W, 3) uint8 RGB -> :class:`Scan`."""
         from .decode import DecodeParams, decode
@@ -210,7 +228,8 @@ class Scanner:
             raise GBError(f"image is {'x'.join(map(str, image_rgb.shape[1::-1]))} but the calibration's camera "
                           f"is {W}x{H}; scan images from the calibrated camera")
         t0 = time.perf_counter()
-        sm = decode(image_rgb, self.pattern, self.decode_params or DecodeParams(), keep_stages=keep_stages)
+        sm = decode(image_rgb, self.pattern, self.decode_params or DecodeParams(), keep_stages=keep_stages,
+                    stripe_range=self.stripe_range)
         t_dec = (time.perf_counter() - t0) * 1e3
         s = self.reconstruct(sm.column, sm.confidence, decoded=sm.valid, clean=clean)
         s.stripe, s.stripemap = sm.stripe, sm
@@ -261,6 +280,32 @@ class Scanner:
         timings = {"triangulate": (t1 - t0) * 1e3, "clean": (t2 - t1) * 1e3, "normals": (t3 - t2) * 1e3,
                    "total": (t3 - t0) * 1e3}
         return Scan(xyz, normals, conf, reason, counts, timings)
+
+
+def stripe_range_from_pencil(triangulator, stripe_px: float, near_mm: float, far_mm: float,
+                             margin_stripes: float = 1.0) -> np.ndarray | None:
+    """(2, H, W) float32 absolute stripe indices (low, high) that each pixel's ray meets between
+    depths ``near_mm`` and ``far_mm`` (``margin_stripes`` added either side), from the triangulator's
+    pencil of light planes: on the ray ``p = z (mx, my, 1)`` the plane of column ``x`` holds ``p``
+    where ``x = xc + (ad - z a.m) / (z b.m - bd)`` (:class:`gbscan.triangulate.Pencil`), monotonic
+    in ``z`` between its pole; NaN where the pole falls inside the range.  None without a pencil."""
+    pen = triangulator.pencil
+    if pen is None or not (0 < near_mm < far_mm):
+        return None
+    H, W = triangulator.shape
+    mx, my = triangulator.mx, triangulator.my
+    am = pen.a[0] * mx + pen.a[1] * my + pen.a[2]
+    bm = pen.b[0] * mx + pen.b[1] * my + pen.b[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cols = [pen.xc + (pen.ad - z * am) / (z * bm - pen.bd) for z in (near_mm, far_mm)]
+        pole = pen.bd / bm                      # the depth where the ray runs along the planes
+        inside = (pole >= near_mm) & (pole <= far_mm)
+    lo = (np.minimum(*cols) + 0.5) / stripe_px - margin_stripes
+    hi = (np.maximum(*cols) + 0.5) / stripe_px + margin_stripes
+    bad = inside | ~np.isfinite(lo) | ~np.isfinite(hi)
+    lo[bad] = np.nan
+    hi[bad] = np.nan
+    return np.stack([lo.reshape(H, W), hi.reshape(H, W)]).astype(np.float32)
 
 
 def _clean(xyz, confidence, params, reason):

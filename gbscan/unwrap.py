@@ -190,6 +190,9 @@ class UnwrapParams:
         blur 1.75-3 px).  Components held by votes from two sides are left alone: lowering
         ``link_reach_rows`` to 5 instead fixes the same pixels but refuses sandwiched 6-row
         strips of the face (head at 650 mm, seed 0: 85.0 -> 83.2 % kept).
+    volume_frac : with a working volume (the decoder's ``stripe_range``), an offset counts as
+        inside when it keeps at least this fraction of the region's pixels within the stripes they
+        can see there (:func:`index_regions`).
     link_slope_unmeasured : such a component is not linked either when fewer than
         ``_SLOPE_MIN_VOTES`` of its votes have a measurable slope on both sides (the reported
         surface is a strip too thin to measure, or the component is): the test that guards the
@@ -235,6 +238,7 @@ class UnwrapParams:
     link_slope_half_px: int = 8
     link_slope_below_rows: int = 3
     link_slope_unmeasured: bool = True
+    volume_frac: float = 0.5
 
     def __post_init__(self):
         for name in ("n_ref_pixels", "n_ref_rows", "min_region_px", "min_markers", "conflict_run_px",
@@ -270,6 +274,8 @@ class UnwrapParams:
         if not 0.0 <= float(self.conflict_clean_level) < 1.0:
             raise GBError(f"UnwrapParams.conflict_clean_level must be in [0, 1) (0 disables), got "
                           f"{self.conflict_clean_level}")
+        if not 0.0 < float(self.volume_frac) <= 1.0:
+            raise GBError(f"UnwrapParams.volume_frac must be in (0, 1], got {self.volume_frac}")
         if not (0 < float(self.link_tol_px) < 4.0) or not 0.5 <= float(self.link_agree_frac) <= 1.0:
             raise GBError(f"UnwrapParams.link_tol_px must be in (0, 4) px (a quarter period: 2) and link_agree_frac "
                           f"in [0.5, 1], got {self.link_tol_px}, {self.link_agree_frac}")
@@ -735,8 +741,15 @@ def _margin_px(params: UnwrapParams, evidence, seen) -> float:
     return m
 
 
+#: RegionIndex.why of a region whose best offset puts it outside the working volume
+OUTSIDE = "outside the working volume"
+#: the working-volume test counts every 2nd row and column of a region (a fraction of its pixels)
+_VOLUME_STEP = 2
+
+
 def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, n_regions: int,
-                  pattern: PatternSpec, params: UnwrapParams = UnwrapParams()) -> RegionIndex:
+                  pattern: PatternSpec, params: UnwrapParams = UnwrapParams(),
+                  stripe_range: np.ndarray | None = None) -> RegionIndex:
     """Absolute stripe offset of every region by the cyan markers (a matched filter).
 
     For each region, every candidate offset ``o`` (same parity as the colours: even) is scored
@@ -749,6 +762,16 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
     ``index_margin`` of the evidence more, or ``index_margin_events`` marker events more where
     that is less (regions seeing many markers).  Otherwise the region is *unindexed* -- never a
     guess.
+
+    stripe_range : optional (2, H, W) float32, the absolute stripes (low, high; NaN: no bound) each
+    pixel can see inside the scanner's working volume.  An offset is inside when it keeps at least
+    ``volume_frac`` of the region's bounded pixels within their range
+    (:func:`gbscan.kernels.region_offset_cover`).  The prior never picks the offset: the best
+    candidate is the same with or without it, and a region whose best candidate lies outside is
+    unindexed (:data:`OUTSIDE`); it only rules out runner-ups outside, which the margin test then
+    ignores.
+    The marker code repeats its gaps, so a region seeing 2-3 markers often has a runner-up 30-50
+    stripes away -- over half a metre deeper at the paper's rig -- that the working volume excludes.
     """
     n_st = pattern.n_stripes
     is_marker = np.zeros(n_st, bool)
@@ -766,17 +789,31 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
     rmin, rmax, start, hc, hg = kernels.region_histograms(np.ascontiguousarray(labels, dtype=np.uint8),
                                                           np.ascontiguousarray(relative, dtype=np.int32),
                                                           np.ascontiguousarray(region, dtype=np.int32), n_regions)
+    if stripe_range is None:
+        cover, cstart, npx = np.zeros(0, np.int64), np.zeros(n_regions + 1, np.int64), np.zeros(n_regions, np.int64)
+    else:
+        stripe_range = np.asarray(stripe_range)
+        if stripe_range.shape != (2, *region.shape) or stripe_range.dtype != np.float32:
+            raise GBError(f"index_regions: stripe_range must be a (2, {region.shape[0]}, {region.shape[1]}) float32 "
+                          f"array, got {stripe_range.dtype} {stripe_range.shape}")
+        cover, cstart, npx = kernels.region_offset_cover(np.ascontiguousarray(region, dtype=np.int32),
+                                                         np.ascontiguousarray(relative, dtype=np.int32),
+                                                         stripe_range[0], stripe_range[1], rmin, rmax, n_st,
+                                                         _VOLUME_STEP)
+    frac = float(params.volume_frac)
     if _SCORE_COMPILED:
         status, seen, offset, evidence, mismatch, runner_up = kernels.score_offsets(
-            rmin, rmax, start, hc, hg, is_marker, int(params.min_marker_px))
+            rmin, rmax, start, hc, hg, is_marker, int(params.min_marker_px), cover, cstart, npx, frac)
         out.markers_seen[:] = seen
-        scored = status == 3
+        scored = status >= 3
         out.offset[scored], out.evidence[scored] = offset[scored], evidence[scored]
         out.mismatch[scored], out.runner_up[scored] = mismatch[scored], runner_up[scored]
         for k in range(n_regions):
             st = int(status[k])
             if st < 3:
                 out.why[k] = ("empty region", "region too thin", "region wider than the pattern")[st]
+            elif st == 4:
+                out.why[k] = OUTSIDE
             elif seen[k] < params.min_markers:
                 out.why[k] = f"too few markers ({int(seen[k])} < {params.min_markers})"
             elif mismatch[k] > params.max_mismatch * evidence[k]:
@@ -828,12 +865,19 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
         best = int(np.argmin(mis))
         b_mis = int(mis[best])
         ev = int(n_c.sum() + exp_all[okA][best])
-        second = int(np.partition(mis, 1)[1]) if mis.size > 1 else np.iinfo(np.int64).max // 4
+        if npx[k]:  # candidate A of relative r0 at cover[cstart[k] + A + span]
+            inside = cover[cstart[k] + cand + span] >= frac * npx[k]
+        else:
+            inside = np.ones(cand.size, bool)
+        others = (np.arange(cand.size) != best) & inside
+        second = int(mis[others].min()) if others.any() else np.iinfo(np.int64).max // 4
         out.offset[k] = int(cand[best]) - r0
         out.evidence[k] = ev
         out.mismatch[k] = b_mis
         out.runner_up[k] = second
-        if seen < params.min_markers:
+        if not inside[best]:
+            out.why[k] = OUTSIDE
+        elif seen < params.min_markers:
             out.why[k] = f"too few markers ({seen} < {params.min_markers})"
         elif b_mis > params.max_mismatch * ev:
             out.why[k] = MISFIT

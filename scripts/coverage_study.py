@@ -17,7 +17,8 @@ and prints, over the lit non-edge pixels (the accuracy targets' denominator):
   both and none beyond (the target's 95 % asks for pixels beyond the angle where the ceiling
   reaches it).
 
-``--decode-param NAME=VALUE`` scans with a decoder parameter off its default (compare a change:
+``--depth-range MIN_MM MAX_MM`` scans as ``gbscan scan --depth-range`` does: the cleaning's range
+and the decoder's working volume.  ``--decode-param NAME=VALUE`` scans with a decoder parameter off its default (compare a change:
 run once with and once without); ``--yaw-deg`` turns the head / the real face (``fran_face``).
 
 ``--bayer RGGB`` renders through a colour filter mosaic and OpenCV's demosaicing (most colour
@@ -41,7 +42,7 @@ BINS_DEG = (0, 40, 60, 70, 75, 80, 90)
 
 
 def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", decode_params=None,
-          yaw_deg: float | None = None) -> dict:
+          yaw_deg: float | None = None, depth_range=None) -> dict:
     from gbscan import sim
     from gbscan.calibfile import calibration_from_rig
     from gbscan.decode import REASONS
@@ -56,7 +57,11 @@ def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", 
     cond = dataclasses.replace(sim.preset(preset), bayer=bayer)
     scene = getattr(sim.scenes, name)(**({} if yaw_deg is None else {"yaw_deg": yaw_deg}))
     r = sim.render(rig, scene, render_pattern(spec), cond, seed=seed)
-    s = Scanner(calibration_from_rig(rig, spec), decode_params=decode_params).scan(r.image)
+    from gbscan.clean import CleanParams
+
+    clean = CleanParams() if depth_range is None else CleanParams(min_depth_mm=depth_range[0],
+                                                                   max_depth_mm=depth_range[1])
+    s = Scanner(calibration_from_rig(rig, spec), decode_params=decode_params, clean_params=clean).scan(r.image)
     P = r.point.astype(np.float64)
     good = r.lit & ~r.depth_edge & np.isfinite(P[..., 2])
     kept = good & s.valid
@@ -145,6 +150,9 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="typical", choices=("clean", "typical", "hard"))
     ap.add_argument("--out", help="folder for the coverage pictures (created)")
     ap.add_argument("--yaw-deg", type=float, help="turn the scenes that take a yaw (head, fran_face) by this much")
+    ap.add_argument("--depth-range", type=float, nargs=2, metavar=("MIN_MM", "MAX_MM"),
+                    help="scan with this depth range, as gbscan scan --depth-range (cleaning and the decoder's "
+                         "working volume)")
     ap.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
                     help="a gbscan.decode.DecodeParams field other than the default (repeatable), "
                          "e.g. extrapolate_fit=0")
@@ -179,13 +187,17 @@ def main(argv=None) -> int:
             out = make_dir(args.out, "--out")
         except GBError as e:
             ap.error(str(e))
+    if args.depth_range is not None and not 0 < args.depth_range[0] < args.depth_range[1]:
+        ap.error(f"--depth-range: expected 0 < MIN_MM < MAX_MM, got {args.depth_range}")
     dec = "default decoder" if decode_params is None else "decoder " + ", ".join(args.decode_param)
+    if args.depth_range is not None:
+        dec += f", depth range {args.depth_range[0]:g}-{args.depth_range[1]:g} mm"
     yaw = "" if args.yaw_deg is None else f", yaw {args.yaw_deg:g} deg"
     print(f"# coverage study, paper rig, preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}{yaw}, "
           f"{dec}, default cleaning")
     for name in names:
         for seed in seeds:
-            res = study(name, seed, args.preset, out, args.bayer, decode_params, args.yaw_deg)
+            res = study(name, seed, args.preset, out, args.bayer, decode_params, args.yaw_deg, args.depth_range)
             if "picture" in res:
                 print(f"   wrote {res['picture']}")
     return 0

@@ -16,6 +16,7 @@ pixel with the simulator's truth (``r.proj_xy``):
 
     python scripts/sweep_decode.py [--cache DIR] [--only SUBSTR] [--quick] [--decode NAME=VALUE]
     python scripts/sweep_decode.py --cache DIR --blur-grid 1,1.25,1.5,1.75,2,2.25,2.5,2.75,3
+    python scripts/sweep_decode.py --cache DIR --depth-range 400 1200   # with a working volume
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
 wrong non-edge pixels under it (all wrong regions with ``--edges``), and a total.  Progress lines go to stderr.  Renders are cached in ``--cache`` (npz).
@@ -129,9 +130,27 @@ def wrong_regions(sm, truth, depth_edge, stripe_px: int) -> tuple[dict, list[dic
     return counts, rows
 
 
-def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = True) -> dict:
-    """Decode every scene with ``params``; per-scene lines (and wrong regions) when ``show``.
-    Returns the totals: lit non-edge pixels, reported, wrong, wrong_edge, bad_scenes, scenes."""
+def working_volume(depth_range):
+    """The decoder's stripe prior for the paper rig's true calibration and a depth range (mm), as
+    ``gbscan scan --depth-range`` gives it (:attr:`gbscan.scan.Scanner.stripe_range`); None: none."""
+    if depth_range is None:
+        return None
+    from gbscan import sim
+    from gbscan.calibfile import calibration_from_rig
+    from gbscan.clean import CleanParams
+    from gbscan.pattern import PatternSpec
+    from gbscan.scan import Scanner
+
+    near, far = depth_range
+    cal = calibration_from_rig(sim.paper_rig(), PatternSpec())
+    return Scanner(cal, clean_params=CleanParams(min_depth_mm=near, max_depth_mm=far)).stripe_range
+
+
+def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = True,
+          stripe_range=None) -> dict:
+    """Decode every scene with ``params`` (and the working volume ``stripe_range``); per-scene
+    lines (and wrong regions) when ``show``.  Returns the totals: lit non-edge pixels, reported,
+    wrong, wrong_edge, bad_scenes, scenes."""
     from gbscan.decode import decode
     from gbscan.pattern import PatternSpec
 
@@ -145,7 +164,7 @@ def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = 
         t0 = time.perf_counter()
         image, truth, depth_edge, lit = load_or_render(name, preset, seed, ss, factory, cache)
         t1 = time.perf_counter()
-        sm = decode(image, spec, params, keep_stages=True)
+        sm = decode(image, spec, params, keep_stages=True, stripe_range=stripe_range)
         t2 = time.perf_counter()
         print(f"[{k + 1}/{len(scenes)}] {name}: render/load {t1 - t0:.1f} s, decode {t2 - t1:.2f} s",
               file=sys.stderr, flush=True)
@@ -185,6 +204,9 @@ def main(argv=None) -> int:
                     help="override an UnwrapParams field (repeatable), e.g. --unwrap link_rows=3")
     ap.add_argument("--decode", action="append", default=[], metavar="NAME=VALUE",
                     help="override a DecodeParams number (repeatable), e.g. --decode blur_sigma_along_px=1")
+    ap.add_argument("--depth-range", type=float, nargs=2, metavar=("MIN_MM", "MAX_MM"),
+                    help="a working volume for the indexing prior, as gbscan scan --depth-range (the paper "
+                         "rig's true calibration); default: none")
     ap.add_argument("--blur-grid", metavar="S1,S2,...",
                     help="run the whole sweep once per fixed blur sigma (px) and print one total line each "
                          "(the automatic blur picks 1-3 px by the frame's SNR: the index must hold at all)")
@@ -228,14 +250,17 @@ def main(argv=None) -> int:
             dover[name] = type(cur)(float(val))
     params = DecodeParams(unwrap=UnwrapParams(**over), **dover)
     scenes = [s for s in scene_list(args.quick) if not args.only or args.only in s[0]]
+    if args.depth_range is not None and not 0 < args.depth_range[0] < args.depth_range[1]:
+        ap.error(f"--depth-range: expected 0 < MIN_MM < MAX_MM, got {args.depth_range}")
+    volume = working_volume(args.depth_range)
     if sigmas:
         print(f"{'blur_px':>7s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'bad scenes':>10s}")
         for sg in sigmas:
-            tot = sweep(replace(params, blur_sigma_along_px=sg), scenes, cache, show=False)
+            tot = sweep(replace(params, blur_sigma_along_px=sg), scenes, cache, show=False, stripe_range=volume)
             print(f"{sg:7.2f} {100.0 * tot['reported'] / max(tot['lit'], 1):9.2f} {tot['wrong']:6d} "
                   f"{tot['wrong_edge']:10d} {tot['bad_scenes']:>7d}/{tot['scenes']}", flush=True)
         return 0
-    tot = sweep(params, scenes, cache, args.edges)
+    tot = sweep(params, scenes, cache, args.edges, stripe_range=volume)
     rms = (tot["sq_err"] / tot["n_err"]) ** 0.5 if tot["n_err"] else float("nan")
     print(f"{'TOTAL':26s} {'':12s} {100.0 * tot['reported'] / max(tot['lit'], 1):9.2f} {tot['wrong']:6d} "
           f"{tot['wrong_edge']:10d} {rms:7.3f} {tot['over_1px']:5d}   scenes with wrong pixels: "

@@ -109,6 +109,9 @@ def test_decode_rejects_bad_arguments():
         decode(img, PatternSpec(), params={})
     with pytest.raises(GBError, match="threshold"):
         DecodeParams(threshold="otsu")
+    for bad in (np.zeros((2, 10, 20), np.float32), np.zeros((2, 20, 20), np.float64), np.zeros((20, 20), np.float32)):
+        with pytest.raises(GBError, match="stripe_range"):
+            decode(img, PatternSpec(), stripe_range=bad)
     assert set(REASONS) == set(range(len(REASONS))) and REASONS[OK] == "ok"
 
 

@@ -99,7 +99,7 @@ def fake_decoder(monkeypatch, col):
     """Replace the decoder by the ground truth: the CLI plumbing is tested without its noise."""
     import gbscan.decode as dec
 
-    def decode(image, pattern, params=None, keep_stages=False):
+    def decode(image, pattern, params=None, keep_stages=False, stripe_range=None):
         ok = np.isfinite(col)
         z = np.zeros(col.shape, np.int32)
         return dec.StripeMap(column=col.astype(np.float32), stripe=np.where(ok, 1, -1).astype(np.int32),
@@ -448,6 +448,56 @@ def test_sim_no_point_off_by_3mm_after_cleaning(name):
     print(f"{name}: {int((err > 3).sum())} points > 3 mm ({int((centre > 3).sum())} by the pixel centres' "
           f"truth), {int((err > 1).sum())} > 1 mm, worst {err.max():.2f} mm")
     assert (err > 3).sum() == 0
+
+
+def test_stripe_range_brackets_the_true_stripes_and_the_depths():
+    """Scanner.stripe_range (the decoder's working volume from ``CleanParams`` min/max depth): the
+    closed form of the light planes' pencil.  Columns at its bounds triangulate back to the near
+    and far depths; every lit pixel of a scene inside the volume sees a stripe within its range."""
+    from gbscan import sim
+    from gbscan.clean import CleanParams
+    from gbscan.scan import stripe_range_from_pencil
+
+    r, _ = sim_scan("multi_object")
+    cal = calibration_from_rig(paper_rig(), PatternSpec())
+    s = Scanner(cal, clean_params=CleanParams(min_depth_mm=400.0, max_depth_mm=1200.0))
+    sr = s.stripe_range
+    assert sr.shape == (2, 480, 640) and sr.dtype == np.float32 and np.isfinite(sr).all()
+    assert (sr[1] > sr[0]).all()
+    raw = stripe_range_from_pencil(s.triangulator, 8.0, 400.0, 1200.0, margin_stripes=0.0)
+    # the bounds' columns (stripe * 8 - 0.5) back through the triangulator: the near and far depths
+    # (columns grow with depth on this rig: the projector is to the right), where they are in the
+    # projector's frame
+    for bound, z in ((raw[0], 400.0), (raw[1], 1200.0)):
+        xyz = s.triangulator((bound * 8.0 - 0.5).astype(np.float64))
+        ok = np.isfinite(xyz[..., 2])
+        assert ok.mean() > 0.5 and np.allclose(xyz[..., 2][ok], z, rtol=1e-4)
+    k = np.floor((r.proj_xy[..., 0] + 0.5) / 8.0)
+    inside = r.lit & np.isfinite(k) & (r.point[..., 2] > 400) & (r.point[..., 2] < 1200)
+    assert inside.sum() > 100000
+    assert ((k >= np.floor(sr[0])) & (k <= np.ceil(sr[1])))[inside].all()
+    # no pencil (planes that are not one projector's), no prior; an empty range, none either
+    assert stripe_range_from_pencil(s.triangulator, 8.0, 1200.0, 400.0) is None
+
+
+@pytest.mark.slow
+def test_sim_working_volume_indexes_more_never_wrong():
+    """``gbscan scan --depth-range`` also bounds the decoder's indexing (Scanner.stripe_range): on
+    the multi-object scene a 400-1200 mm volume rules out the runner-up offsets of regions whose
+    2-3 markers fit two offsets 30-50 stripes apart (1.3-1.7 m deep): the small sphere is indexed
+    (82.4 -> 84.3 % of lit non-edge pixels kept at seed 0), no point is added off its surface."""
+    from gbscan.clean import CleanParams
+
+    r, s0 = sim_scan("multi_object")
+    cal = calibration_from_rig(paper_rig(), PatternSpec())
+    s = Scanner(cal, clean_params=CleanParams(min_depth_mm=400.0, max_depth_mm=1200.0)).scan(r.image)
+    k0, _, _ = sim_figures(r, s0)
+    k, rms, _ = sim_figures(r, s)
+    err = _errors_mm(r, s, footprint=True)
+    print(f"multi-object: kept {100 * k0:.1f} -> {100 * k:.1f} %, depth RMS {rms:.3f} mm, worst {err.max():.2f} mm")
+    assert k > k0 + 0.015 and (err > 3).sum() == 0
+    assert s.stripemap.stats["region_why"].get("ambiguous offset", 0) < \
+        s0.stripemap.stats["region_why"].get("ambiguous offset", 0)
 
 
 @pytest.mark.slow

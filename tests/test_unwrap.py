@@ -142,6 +142,50 @@ def test_index_regions_recovers_offset_and_refuses_to_guess():
     assert not idx.indexed[0] and "no markers" in idx.why[0]
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_index_regions_working_volume_rules_out_far_runner_ups(compiled, monkeypatch):
+    """``stripe_range`` (the scanner's working volume): stripes 30-38 show two markers 7 stripes
+    apart, a gap the marker code repeats (stripes 70 and 77): two offsets fit exactly, so the region
+    is ambiguous.  A volume holding stripes 25-45 only rules the far one out: indexed, at the
+    offset the markers chose; a volume that excludes the best one leaves the region unindexed
+    ("outside the working volume") -- the prior never picks an offset.  Compiled and reference
+    scoring agree."""
+    monkeypatch.setattr(uw, "_SCORE_COMPILED", compiled)
+    spec = PatternSpec()
+    lab = stripe_image(spec, 30, 9, rows=10)
+    rel = np.repeat(np.arange(9), 3)[None].repeat(10, 0).astype(np.int32)
+    reg = np.zeros(lab.shape, np.int32)
+    p = uw.UnwrapParams(min_marker_px=5)
+    idx = uw.index_regions(lab, rel, reg, 1, spec, p)
+    assert idx.why[0] == "ambiguous offset" and idx.offset[0] == 30 and idx.runner_up[0] == idx.mismatch[0] == 0
+
+    def volume(lo, hi):
+        r = np.empty((2, *lab.shape), np.float32)
+        r[0], r[1] = lo, hi
+        return r
+
+    idx = uw.index_regions(lab, rel, reg, 1, spec, p, volume(25, 45))
+    assert idx.indexed[0] and idx.why[0] == "ok" and idx.offset[0] == 30
+    assert idx.runner_up[0] > idx.mismatch[0]
+    idx = uw.index_regions(lab, rel, reg, 1, spec, p, volume(60, 90))
+    assert not idx.indexed[0] and idx.why[0] == uw.OUTSIDE and idx.offset[0] == 30
+    # unbounded pixels (NaN) carry no prior
+    assert uw.index_regions(lab, rel, reg, 1, spec, p, volume(np.nan, np.nan)).why[0] == "ambiguous offset"
+    # an offset is inside when it keeps volume_frac of the pixels inside: 6 rows of 10 see 25-45,
+    # 4 see 60-90 (stripes 30-38 inside for 60 %, 70-78 for 40 %)
+    mixed = volume(25, 45)
+    mixed[0, 6:], mixed[1, 6:] = 60, 90
+    assert uw.index_regions(lab, rel, reg, 1, spec, p, mixed).why[0] == "ok"
+    strict = uw.UnwrapParams(min_marker_px=5, volume_frac=0.7)
+    assert uw.index_regions(lab, rel, reg, 1, spec, strict, mixed).why[0] == uw.OUTSIDE
+    loose = uw.UnwrapParams(min_marker_px=5, volume_frac=0.4)
+    assert uw.index_regions(lab, rel, reg, 1, spec, loose, mixed).why[0] == "ambiguous offset"
+    with pytest.raises(GBError, match="stripe_range"):
+        uw.index_regions(lab, rel, reg, 1, spec, p, volume(25, 45)[:, :5])
+    with pytest.raises(GBError, match="volume_frac"):
+        uw.UnwrapParams(volume_frac=0.0)
+
+
 def test_unwrap_rejects_bad_labels():
     with pytest.raises(GBError, match="2-D uint8"):
         uw.unwrap(np.zeros((4, 4, 3), np.uint8))

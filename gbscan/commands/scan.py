@@ -47,7 +47,10 @@ def add_clean_arguments(parser, *, no_clean: bool = True) -> None:
     if no_clean:
         g.add_argument("--no-clean", action="store_true", help="keep every triangulated point")
     g.add_argument("--min-confidence", type=float, help="drop points below this decoder confidence (0..1)")
-    g.add_argument("--depth-range", type=float, nargs=2, metavar=("MIN_MM", "MAX_MM"), help="accepted z range, mm")
+    g.add_argument("--depth-range", type=float, nargs=2, metavar=("MIN_MM", "MAX_MM"),
+                   help="accepted z range, mm; also the working volume the decoder's indexing may assume: a "
+                        "region whose few markers fit two offsets is indexed when only one keeps it inside "
+                        "(give your rig's, e.g. 400 1200)")
     g.add_argument("--max-jump", type=float, help="depth discontinuity: neighbour jump as a fraction of depth")
     g.add_argument("--max-angle-deg", type=float, help="maximum angle between viewing ray and surface normal")
     g.add_argument("--outlier-tol", type=float,
