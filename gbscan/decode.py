@@ -672,20 +672,22 @@ def rim_rule(column_rel: np.ndarray, region: np.ndarray, reg_off_px: np.ndarray,
                                 int(params.rim_end_px), RIM, pull_out))
 
 
+def _rows_or_sigma(rows: int | None, params: DecodeParams) -> int:
+    # a row count as given, or when None the along-stripe blur's sigma rounded (at least 1): how
+    # far the blur carries stripes
+    return int(rows) if rows is not None else max(1, int(round(_sigma_along(params))))
+
+
 def guard_rows(params: DecodeParams) -> int:
     """The rows :func:`rim_guard` masks next to a dropped surface: ``rim_guard_px``, or when it is
     None the along-stripe blur's sigma rounded (at least 1): how far the blur carries stripes."""
-    if params.rim_guard_px is not None:
-        return int(params.rim_guard_px)
-    return max(1, int(round(_sigma_along(params))))
+    return _rows_or_sigma(params.rim_guard_px, params)
 
 
 def guard_end_rows(params: DecodeParams) -> int:
     """The rows :func:`rim_guard` masks above and below a pixel without signal: ``rim_end_rows``,
     or when it is None the along-stripe blur's sigma rounded (at least 1), as :func:`guard_rows`."""
-    if params.rim_end_rows is not None:
-        return int(params.rim_end_rows)
-    return max(1, int(round(_sigma_along(params))))
+    return _rows_or_sigma(params.rim_end_rows, params)
 
 
 def rim_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confidence: np.ndarray,

@@ -207,14 +207,15 @@ class Scanner:
         either side; NaN where the ray meets the light planes edge-on in that range.  The decoder's
         indexing prior (:func:`gbscan.decode.decode`'s ``stripe_range``).  None when the light
         planes are not one pencil (a projector's: ``gbcal`` calibrations are), or when the range
-        lets every pixel see every stripe (the default 50 mm - 10 m): no prior then, at no cost.
-        Computed on first use."""
+        lets every pixel see every stripe: no prior then, at no cost.  The default range (50 mm -
+        10 m) still bounds the far side (no surface beyond 10 m): on ``scripts/sweep_decode.py``
+        it changes nothing but one region (83.26 -> 83.25 % reported).  Computed on first use."""
         if "_stripe_range" not in self.__dict__:
             sr = stripe_range_from_pencil(self.triangulator, float(self.pattern.stripe_px),
                                           float(self.clean_params.min_depth_mm), float(self.clean_params.max_depth_mm))
             if sr is not None and bool(np.all(np.nan_to_num(sr[0], nan=-1.0) <= 0)) and \
                     bool(np.all(np.nan_to_num(sr[1], nan=np.inf) >= self.pattern.n_stripes - 1)):
-                sr = None  # every pixel may see every stripe (the default 50 mm - 10 m): no information
+                sr = None  # every pixel may see every stripe: the range carries no information
             self._stripe_range = sr
         return self._stripe_range
 
