@@ -387,6 +387,34 @@ def test_cli_decode_writes_npz_previews_and_summary(tmp_path, capsys):
     assert "grey" in err and "Traceback" not in err and not (tmp_path / "g.npz").exists()
 
 
+def test_cli_decode_working_volume(tmp_path, capsys):
+    """``gbscan decode --calib C --depth-range MIN MAX``: the working volume of the scan command;
+    on the multi-object scene it indexes regions the markers alone leave ambiguous.  Without
+    --calib, or with an empty range, one clear error and nothing written."""
+    from gbscan import sim
+    from gbscan.calibfile import calibration_from_rig, save_calibration
+    from gbscan.cli import main
+    from gbscan.io import write_png
+
+    r = render("multi_object")
+    img = tmp_path / "frame.png"
+    write_png(img, r.image)
+    cal = tmp_path / "calib.yaml"
+    save_calibration(cal, calibration_from_rig(sim.paper_rig(), PatternSpec()))
+    out0, out1 = tmp_path / "plain.npz", tmp_path / "volume.npz"
+    assert main(["decode", str(img), "-o", str(out0), "--calib", str(cal)]) == 0
+    assert main(["decode", str(img), "-o", str(out1), "--calib", str(cal), "--depth-range", "400", "1200"]) == 0
+    capsys.readouterr()
+    with np.load(out0) as a, np.load(out1) as b:
+        assert (b["mask"] == 0).sum() > (a["mask"] == 0).sum() + 1000
+    for args, msg in ((["--depth-range", "400", "1200"], "needs --calib"),
+                      (["--calib", str(cal), "--depth-range", "1200", "400"], "MIN_MM < MAX_MM")):
+        bad = tmp_path / "bad.npz"
+        assert main(["decode", str(img), "-o", str(bad), *args]) == 1
+        err = capsys.readouterr().err
+        assert msg in err and "Traceback" not in err and not bad.exists()
+
+
 # -- rims: the along-stripe blur near silhouettes and bends ------------------------------------------
 def pull_of(col, region=None, off=None, sigma=2.0):
     from gbscan.decode import rim_rule

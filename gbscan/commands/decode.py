@@ -20,6 +20,9 @@ def add_arguments(p):
     p.add_argument("-o", "--output", help="output .npz (column, stripe, confidence, mask, ...)")
     p.add_argument("--preview", metavar="DIR", help="write the decoder's stage pictures (PNG) into DIR")
     p.add_argument("--calib", metavar="YAML", help="calibration file: the pattern (and camera size) come from it")
+    p.add_argument("--depth-range", type=float, nargs=2, metavar=("MIN_MM", "MAX_MM"),
+                   help="the working volume (needs --calib with light planes): the indexing rules out offsets "
+                        "that would put a region outside it, as 'gbscan scan --depth-range' does")
     p.add_argument("--stripe-px", type=int, default=8, help="stripe width in projector px (default 8)")
     p.add_argument("--no-markers", action="store_true", help="the pure green/blue pattern (relative index only)")
     p.add_argument("--projector", type=size_arg, default=(1024, 768), metavar="WxH",
@@ -194,14 +197,29 @@ def run(args) -> int:
     if args.output and not str(args.output).endswith(".npz"):
         raise GBError(f"-o {args.output}: the output must end in .npz")
     size = None
+    stripe_range = None
+    if args.depth_range is not None and not args.calib:
+        raise GBError("--depth-range needs --calib (the light planes map depths to stripes)")
+    if args.depth_range is not None and not 0 < args.depth_range[0] < args.depth_range[1]:
+        raise GBError(f"--depth-range: expected 0 < MIN_MM < MAX_MM, got {args.depth_range[0]:g} {args.depth_range[1]:g}")
     if args.calib:
         from ..calibfile import load_calibration
 
-        cal = load_calibration(args.calib, require_planes=False)
+        cal = load_calibration(args.calib, require_planes=args.depth_range is not None)
         if cal.pattern is None:
             raise GBError(f"--calib {args.calib} records no pattern; give --stripe-px/--no-markers instead")
         pattern = cal.pattern
         size = cal.camera.size
+        if args.depth_range is not None:
+            from ..clean import CleanParams
+            from ..scan import Scanner
+
+            scanner = Scanner(cal, clean_params=CleanParams(min_depth_mm=args.depth_range[0],
+                                                            max_depth_mm=args.depth_range[1]))
+            stripe_range = scanner.stripe_range
+            if stripe_range is None:
+                print(f"note: --calib {args.calib}: the light planes are not one projector's pencil (or the range "
+                      "bounds nothing); decoding without a working volume")
     else:
         pattern = PatternSpec(args.projector[0], args.projector[1], args.stripe_px, not args.no_markers)
     from ..decode import DecodeParams
@@ -214,7 +232,7 @@ def run(args) -> int:
         if not d.parent.is_dir():
             raise GBError(f"--preview {d}: folder {d.parent} does not exist (create it first)")
     image = read_image_rgb(args.image, size=size)
-    sm = decode(image, pattern, params, keep_stages=bool(args.preview))
+    sm = decode(image, pattern, params, keep_stages=bool(args.preview), stripe_range=stripe_range)
     if args.output:
         arrays = sm.arrays()
         used = params.to_dict()
