@@ -186,6 +186,22 @@ class DecodeParams:
         327-647 -> 77-487 (``scripts/sweep_decode.py --blur-grid``).  The cost falls on the frames
         the automatic blur takes above 1.5 px (noisy ones): the hard preset's sweep scenes report
         1-6 points fewer pixels; at the automatic blur no other scene changes.
+    step_guard_ratio : reported pixels on the dim side of a brightness step inside their region's
+        stretch along the stripes, within 3 sigma of the stretch's end, are masked "rim" when the
+        bright side is more than this many times brighter (0: never).  See :func:`step_guard`.
+        The blur carries a bright surface's stripes across a horizontal depth edge further than
+        the guard rows when the surface beyond is dimmer (farther, darker): the hard preset's
+        box, 670 mm, over the wall, 900 mm, at a 2.5 px blur: 7 rows, one region, 14 pixels 18
+        stripes off (an even shift: the colours agree, only the brightness shows the edge).
+        Measured (``scripts/sweep_decode.py``, 48 scenes; off / 1.9): automatic blur 83.26 ->
+        83.25 % reported, wrong pixels on depth edges 176 -> 167, off them 13 -> 13 (Bayer);
+        across fixed blurs 1, 1.25 ... 3 px off depth edges 13 / 0 / 0 / 9 / 9 / 9 / 16 / 7 / 7 ->
+        13 / 0 / 0 / 9 / 9 / 9 / 9 / 7 / 7 (what is left is Bayer scenes'), on them 48-225 ->
+        48-223.  Scans (``scripts/coverage_study.py``, seeds 0-2): sphere 0 to -0.1 points kept,
+        head -0.1 to -0.3 (its eyebrows: an albedo step near a stretch's end), depth RMS and worst
+        points unchanged.  1.6 removed the same wrong pixels and 9 more edge ones, for 0.7-0.8
+        points of the head.  Cost 0.3 ms a 640x480 frame
+        (0.8 ms on the multi-object scene: one test per column stretch end).
     """
 
     blur_sigma_along_px: float | None = None
@@ -216,6 +232,7 @@ class DecodeParams:
     rim_guard_px: int | None = None
     rim_end_rows: int | None = None
     rim_guard_no_boundary: bool = True
+    step_guard_ratio: float = 1.9
 
     def __post_init__(self):
         def bad(name, why):
@@ -255,6 +272,8 @@ class DecodeParams:
             bad("boundary_fit_half", f"must be a whole number of boundaries in [0, 10] (0: no fit), got {bf!r}")
         if not isinstance(self.unwrap, UnwrapParams):
             bad("unwrap", "must be an UnwrapParams")
+        if not (float(self.step_guard_ratio) == 0 or float(self.step_guard_ratio) > 1):
+            bad("step_guard_ratio", "must be 0 (off) or a brightness ratio above 1")
         if not (float(self.rim_bias_px) >= 0) or int(self.rim_end_px) < 0:
             bad("rim_bias_px/rim_end_px", "must be >= 0 (0 disables the rule)")
         if not isinstance(self.rim_guard_no_boundary, bool):
@@ -722,6 +741,52 @@ def rim_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confiden
     return n
 
 
+#: step_guard's fixed shape: the phase-blind brightness window (camera px, about one green-blue
+#: period of 8 px stripes at the paper's geometry), the rows averaged on either side of a step,
+#: the flatness (max / min) of the dim side's rows, and the reach in blur sigmas
+STEP_BOX_PX, STEP_HALF_ROWS, STEP_FLAT, STEP_REACH_SIGMAS = 7, 2, 1.3, 3.0
+
+
+def step_guard(image_rgb: np.ndarray, mask: np.ndarray, column: np.ndarray, stripe: np.ndarray,
+               confidence: np.ndarray, region: np.ndarray, params: DecodeParams,
+               counts: np.ndarray | None = None) -> int:
+    """Mask ``RIM`` the reported pixels that the along-stripe blur may have given a brighter
+    surface's stripes across a horizontal depth edge; returns their count.
+
+    image_rgb : (H, W, 3) uint8 frame; mask (H, W) uint8, column (H, W) float32, stripe (H, W)
+    int32, confidence (H, W) float32: updated in place (NaN / -1 / 0 where masked), as is
+    ``counts`` (n_codes,) when given; region (H, W) int32.
+
+    Why: the blur (paper step 1) carries each surface's stripes across a horizontal depth edge,
+    and where the surface beyond is dimmer (farther, darker, more oblique) its own stripes lose to
+    the carried ones for several rows, more than the rows :func:`rim_guard` masks.  The unwrapping
+    follows the carried stripes continuously, so those rows join the bright surface's region with
+    its index: off by an even number of stripes, colours and markers agreeing.  What shows the
+    edge is the *unblurred* brightness: a step along the column inside one region.  A
+    phase-blind brightness (linear green + blue over about one period of the row,
+    :func:`gbscan.kernels.step_guard`) is compared across each row boundary of a region's stretch along a column
+    (``STEP_HALF_ROWS`` rows either side, the two rows at the boundary skipped); where one side is
+    more than ``params.step_guard_ratio`` times brighter, the dim side is flat (a surface, not the
+    ramp of a shadow or of the light field's edge, where carried stripes are the same surface's),
+    and the stretch ends on the dim side within ``STEP_REACH_SIGMAS`` blur sigmas, the dim side
+    from the step to the stretch's end is masked.  An albedo step on one surface near a stretch's
+    end (eyebrows) is masked too: the cost, measured in :class:`DecodeParams`.
+    """
+    ratio = float(params.step_guard_ratio)
+    if ratio <= 0:
+        return 0
+    from . import kernels
+
+    reach = max(1, int(math.ceil(STEP_REACH_SIGMAS * _sigma_along(params))))
+    n = int(kernels.step_guard(np.ascontiguousarray(image_rgb), gamma_lut(params.camera_gamma), STEP_BOX_PX,
+                               np.ascontiguousarray(region, dtype=np.int32), mask, column, stripe, confidence,
+                               reach, np.float32(ratio), STEP_HALF_ROWS, np.float32(STEP_FLAT), OK, RIM))
+    if n and counts is not None:
+        counts[OK] -= n
+        counts[RIM] += n
+    return n
+
+
 def _mark_spans(reason: np.ndarray, spans: np.ndarray, code: int) -> None:
     """Set ``code`` on the still-OK pixels of row spans ``(v, u_first, u_last)`` (n, 3) of
     ``reason`` (H, W) uint8, in place (finish_pixels keeps any non-zero input reason)."""
@@ -1092,6 +1157,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         len(REASONS))
     rim_guard(mask, column, stripe, conf, guard_rows(params), counts, guard_end_rows(params),
               bool(params.rim_guard_no_boundary))
+    step_guard(img, mask, column, stripe, conf, region, params, counts)
     n_orphans = int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED))
     if n_orphans:
         counts[OK] -= n_orphans

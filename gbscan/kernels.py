@@ -3511,6 +3511,140 @@ def drop_orphans(mask, column, stripe, conf, ok_code, code):
     return n
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _brightness(img, lut, v, u, h):
+    # phase-blind brightness of pixel (v, u): the mean of lut[G] + lut[B] over columns u - h .. u + h
+    # (clipped at the image sides); a window of about one green-blue period sums a green and a
+    # blue stripe whatever the phase, so its steps are the surface's irradiance and albedo
+    W = img.shape[1]
+    lo = max(u - h, 0)
+    hi = min(u + h, W - 1)
+    px = img[v]
+    s = np.float32(0.0)
+    for x in range(lo, hi + 1):
+        s += lut[px[x, 1]] + lut[px[x, 2]]
+    return s / np.float32(hi - lo + 1)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _step_at(buf, i_bright, i_dim, half, ratio, flat):
+    # the step test on buf[i_bright : i_bright + half] (the bright side's rows) against
+    # buf[i_dim : i_dim + half] (the dim side's): brighter by more than ``ratio`` in the mean, the
+    # dim side flat (max <= ``flat`` min)
+    sa = np.float32(0.0)
+    for k in range(i_bright, i_bright + half):
+        sa += buf[k]
+    sb = np.float32(0.0)
+    lo = np.float32(np.inf)
+    hi = np.float32(0.0)
+    for k in range(i_dim, i_dim + half):
+        x = buf[k]
+        sb += x
+        lo = min(lo, x)
+        hi = max(hi, x)
+    return sa > ratio * sb and hi <= flat * lo
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _step_below(img, lut, box_h, u, a, b, reach, ratio, half, flat, buf):
+    # step_guard's test for a dim side below a step in the stretch a..b of column u: the lowest
+    # boundary t (between rows t - 1 and t) that qualifies, rows t - 1 .. b to mask; b + 2: none.
+    # Reads rows max(a, b - reach - half) .. b (buf[k - a]: row k's brightness)
+    t0 = max(a + half + 1, b - reach + 1)
+    if t0 > b - half:
+        return b + 2
+    for k in range(t0 - 1 - half, b + 1):
+        buf[k - a] = _brightness(img, lut, k, u, box_h)
+    for t in range(t0, b - half + 1):
+        if _step_at(buf, t - 1 - half - a, t + 1 - a, half, ratio, flat):
+            return t
+    return b + 2
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _step_above(img, lut, box_h, u, a, b, reach, ratio, half, flat, buf):
+    # mirrored: a dim side above a step, the highest t that qualifies, rows a .. t to mask; a - 1:
+    # none.  Reads rows a .. min(b, a + reach + half): the same answer for any b past that row
+    t1 = min(b - half, a + reach)
+    if t1 < a + half + 1:
+        return a - 1
+    for k in range(a, t1 + half + 1):
+        buf[k - a] = _brightness(img, lut, k, u, box_h)
+    for t in range(t1, a + half, -1):
+        if _step_at(buf, t + 1 - a, t - 1 - half - a, half, ratio, flat):
+            return t
+    return a - 1
+
+
+@njit(cache=True, nogil=True)
+def _unreport_rows(mask, column, stripe, conf, u, x0, x1, ok_code, code):
+    # rows x0 .. x1 of column u: reported pixels -> ``code`` (NaN / -1 / 0); returns the count
+    n = 0
+    for x in range(x0, x1 + 1):
+        if mask[x, u] == ok_code:
+            mask[x, u] = code
+            column[x, u] = np.nan
+            stripe[x, u] = -1
+            conf[x, u] = 0.0
+            n += 1
+    return n
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def step_guard(img, lut, box, region, mask, column, stripe, conf, reach, ratio, half, flat, ok_code, code):
+    """Mask ``code`` the reported pixels (``mask == ok_code``) on the dim side of a brightness
+    step inside their region's stretch along an image column, near that stretch's end: the
+    stripes the along-stripe blur carried from a brighter surface across a horizontal depth edge.
+    Returns the count; column/stripe/conf set to NaN/-1/0 there; in place.
+
+    img (H, W, 3) uint8 RGB, lut (256,) float32 linearisation: the brightness of a pixel is the
+    mean of ``lut[G] + lut[B]`` over the ``box`` (odd) px of its row around it (clipped at the
+    sides; about one green-blue period: phase-blind).  region (H, W) int32 (-1 none).  For each
+    column, each maximal run of rows ``a .. b`` of one region and each boundary ``t`` between rows
+    ``t - 1`` and ``t`` with ``half`` rows of the run beyond a transition row on either side:
+    ``A`` = mean brightness over rows ``t - 1 - half .. t - 2``, ``B`` over ``t + 1 .. t + half``
+    (rows ``t - 1`` and ``t`` skipped: the camera's defocus blends them).  If ``A > ratio B``, the
+    ``B`` rows are flat (max <= ``flat`` min: a surface, not the ramp of a light field's or
+    shadow's edge) and the run ends within ``reach`` rows past the transition pair (``b - t + 1 <=
+    reach``), rows ``t - 1 .. b`` are masked; mirrored for a brighter side below (``t - a <= reach``:
+    rows ``a .. t``).  Row-major: the runs are found by comparing each row with the run each
+    column is in, and only their ends are looked at, each while its rows are recent (the top
+    ``reach + half + 1`` rows after them, the bottom when the run ends); the brightness is
+    computed there alone.
+    """
+    H, W = region.shape
+    cur = np.full(W, -1, np.int32)
+    start = np.zeros(W, np.int64)
+    due = np.full(W, H + 1, np.int64)   # row at which the stretch's top test can run (H + 1: done)
+    buf = np.empty(H, np.float32)
+    n = 0
+    box_h = box // 2
+    top_rows = reach + half + 1         # the rows the top test reads
+    for v in range(H + 1):
+        for u in range(W):
+            r = region[v, u] if v < H else np.int32(-1)
+            if r == cur[u]:
+                if v == due[u]:
+                    # the top test, while its rows are recent (they are the same for any end below)
+                    a = start[u]
+                    hi_t = _step_above(img, lut, box_h, u, a, v - 1, reach, ratio, half, flat, buf)
+                    n += _unreport_rows(mask, column, stripe, conf, u, a, hi_t, ok_code, code)
+                    due[u] = H + 1
+                continue
+            if cur[u] >= 0:
+                a = start[u]
+                b = v - 1
+                if due[u] <= H:   # a short stretch: its top test now
+                    hi_t = _step_above(img, lut, box_h, u, a, b, reach, ratio, half, flat, buf)
+                    n += _unreport_rows(mask, column, stripe, conf, u, a, hi_t, ok_code, code)
+                lo_t = _step_below(img, lut, box_h, u, a, b, reach, ratio, half, flat, buf)
+                n += _unreport_rows(mask, column, stripe, conf, u, lo_t - 1, b, ok_code, code)
+            cur[u] = r
+            start[u] = v
+            due[u] = v + top_rows if r >= 0 else H + 1
+    return n
+
+
 @njit(cache=True, nogil=True)
 def bridge_cuts(j_x, seg_j0, seg_j1, ratio, pre):
     """Junctions of unlocated boundaries whose bridge does not fit the spacing on both sides.

@@ -15,9 +15,9 @@ from gbscan.pattern import PatternSpec, render_pattern
 #: rules tuned for it (before ``blur_sigma_along_px=None``, the automatic blur, became the default).
 #: Each scenario test checks its mechanism under these and the defaults' result on the same frame.
 #: (One end row, as then: the automatic ``rim_end_rows`` would take the sigma, 2 rows; and the
-#: guard next to unindexed and isolated pixels only, not ``no_boundary`` ones.)
+#: guard next to unindexed and isolated pixels only, not ``no_boundary`` ones; no brightness-step guard.)
 SIGMA2 = {"blur_sigma_along_px": 2.0, "rim_guard_px": 2, "rim_end_px": 1, "rim_end_rows": 1,
-          "rim_guard_no_boundary": False}
+          "rim_guard_no_boundary": False, "step_guard_ratio": 0}
 
 def test_motion_kernel_is_normalised_and_oriented():
     k0 = motion_kernel(2.0, 0.0, 0.0)
@@ -1426,3 +1426,98 @@ def test_index_margin_in_marker_events_indexes_a_four_marker_panel():
     assert _wrong_off_edges(sm, r) == 0 and s["index_ok"] == 1.0
     with pytest.raises(GBError, match="index_margin_events"):
         UnwrapParams(index_margin_events=-1)
+
+
+def test_step_guard_brightness_is_the_clipped_row_mean_of_green_plus_blue():
+    """The step guard's brightness (kernels._brightness) against numpy: lut[G] + lut[B], averaged
+    over a row window clipped at the image sides; over one period of the stripes it is phase-blind."""
+    from gbscan import kernels
+    from gbscan.decode import gamma_lut
+
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, (9, 23, 3), dtype=np.uint8)
+    lut = gamma_lut(2.2)
+    s = lut[img[..., 1]].astype(np.float64) + lut[img[..., 2]]
+    for h in (0, 1, 3):
+        ref = np.stack([s[:, max(u - h, 0):u + h + 1].mean(axis=1) for u in range(23)], axis=1)
+        out = np.array([[kernels._brightness(img, lut, v, u, h) for u in range(23)] for v in range(9)])
+        assert np.allclose(out, ref, rtol=1e-5), h
+    # green|blue stripes of period 6 px: flat with a 7 px window, whatever the phase
+    stripes = np.zeros((1, 40, 3), np.uint8)
+    stripes[:, (np.arange(40) // 3) % 2 == 0, 1] = 200
+    stripes[:, (np.arange(40) // 3) % 2 == 1, 2] = 200
+    inner = np.array([kernels._brightness(stripes, lut, 0, u, 3) for u in range(3, 37)])
+    assert inner.max() / inner.min() < 1.2
+
+
+def _step_case(levels, region_col, reach=8, ratio=1.6, premask=()):
+    """step_guard on an image whose rows are uniformly ``levels`` (8-bit green = blue), 3 columns
+    wide, one region column repeated; returns the masked rows of the middle column."""
+    from gbscan import kernels
+    from gbscan.decode import OK, RIM, gamma_lut
+
+    H = len(levels)
+    img = np.zeros((H, 3, 3), np.uint8)
+    img[..., 1] = img[..., 2] = np.asarray(levels, np.uint8)[:, None]
+    region = np.repeat(np.asarray(region_col, np.int32)[:, None], 3, axis=1)
+    mask = np.where(region >= 0, OK, DARK).astype(np.uint8)
+    mask[list(premask)] = decode_module.ISOLATED                    # masked already: keeps its reason
+    column = np.where(mask == OK, 100.0, np.nan).astype(np.float32)
+    stripe = np.where(mask == OK, 12, -1).astype(np.int32)
+    conf = np.where(mask == OK, 0.9, 0.0).astype(np.float32)
+    n = kernels.step_guard(img, gamma_lut(2.2), 7, region, mask, column, stripe, conf, reach, np.float32(ratio), 2,
+                           np.float32(1.3), OK, RIM)
+    hit = mask == RIM
+    assert n == hit.sum() and (hit[:, 0] == hit[:, 2]).all() and (hit[:, 0] == hit[:, 1]).all()
+    assert np.isnan(column[hit]).all() and (stripe[hit] == -1).all() and (conf[hit] == 0).all()
+    assert (column[~hit & (mask == OK)] == 100).all() and (mask[list(premask)] == decode_module.ISOLATED).all()
+    return np.flatnonzero(hit[:, 1])
+
+
+def test_step_guard_masks_the_dim_side_of_a_step_near_the_stretch_end():
+    """kernels.step_guard: a bright surface (8-bit 150: linear 79) over a dimmer one (100: 33)
+    inside one region's stretch, which ends 7 rows past the step: the rows from the step's
+    transition pair to the stretch's end go; mirrored for the bright side below.  Nothing goes
+    when the dim side is a ramp (a shadow's or the light field's edge), the step is farther than
+    ``reach`` from the stretch's end, the ratio is below the threshold, or the step is a region
+    boundary or a break in the stretch (masked pixels keep their reason: ``_step_case``)."""
+    bright, dim = [150] * 22, [120] + [100] * 7          # rows 0-21, transition row 22, rows 23-29
+    one = [0] * 30
+    assert _step_case(bright + dim, one).tolist() == list(range(21, 30))
+    assert _step_case(bright + dim, one, premask=(25, 26)).tolist() == [21, 22, 23, 24, 27, 28, 29]
+    assert _step_case(dim[::-1] + bright[::-1], one).tolist() == list(range(0, 9))      # mirrored
+    ramp = [120, 105, 92, 80, 70, 60, 52, 45]                                           # max/min > 1.3
+    assert _step_case(bright + ramp, one).size == 0
+    far = bright + [120] + [100] * 20
+    assert _step_case(far, [0] * 43).size == 0                                           # 20 rows > reach
+    assert _step_case(far, [0] * 43, reach=21).tolist() == list(range(21, 43))
+    assert _step_case(far, [0] * 43, reach=20).tolist() == list(range(22, 43))          # the next boundary
+    assert _step_case(bright + [140] + [130] * 7, one).size == 0                         # 1.37 < 1.6
+    assert _step_case(bright + dim, one, ratio=2.6).size == 0                            # 2.44 < 2.6
+    assert _step_case(bright + dim, [0] * 22 + [1] * 8).size == 0                         # two regions
+    assert _step_case(bright + dim, [0] * 22 + [-1] + [0] * 7).size == 0                  # two stretches
+
+
+@pytest.mark.slow
+def test_sim_hard_multi_object_step_guard_removes_stripes_carried_onto_the_wall():
+    """Hard preset, blur 2.5 px: the blur carries the box's stripes (670 mm) 7 rows past its bottom
+    silhouette onto the wall (900 mm, dimmer), past the guard rows; the unwrapping follows them
+    into the box's region, 18 stripes off (an even shift: colours and markers agree).  The
+    brightness step inside the region shows the edge: with the step guard none is wrong, for a
+    few dozen pixels."""
+    r = render("multi_object", "hard")
+    truth = r.proj_xy[..., 0]
+
+    def wrong(sm):
+        ok = sm.valid & np.isfinite(truth)
+        return int((ok & (np.abs(np.where(ok, sm.column - truth, 0)) >= 4)).sum())
+
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=2.5, step_guard_ratio=0))
+    sm = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=2.5))
+    print(f"hard multi-object, blur 2.5: wrong {wrong(sm0)} -> {wrong(sm)}, reported {sm0.valid.sum()} -> "
+          f"{sm.valid.sum()}")
+    assert wrong(sm0) >= 5 and wrong(sm) == 0
+    assert sm0.valid.sum() - 100 < sm.valid.sum() < sm0.valid.sum()
+    assert sm.stats["reasons"]["rim"] == (sm.mask == decode_module.RIM).sum()
+    with pytest.raises(GBError, match="step_guard_ratio"):
+        DecodeParams(step_guard_ratio=0.5)
