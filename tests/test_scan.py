@@ -505,7 +505,8 @@ def test_sim_hard_multi_object_end_rows_follow_the_blur():
     """Hard preset (the automatic blur takes 3 px): the blur carries a box's stripes past its
     bottom silhouette onto the wall below, where one row of guard (the fixed ``rim_end_rows`` of
     before) left a point 231 mm off what its pixel sees.  The automatic end rows (the sigma
-    rounded: 3 here) remove it; with one row it comes back."""
+    rounded: 3 here) remove it; with one row it comes back, unless the brightness-step guard
+    (``step_guard_ratio``, on by default) sees the edge, which it does here too."""
     from gbscan import sim
     from gbscan.decode import DecodeParams, guard_end_rows
     from gbscan.pattern import render_pattern
@@ -519,11 +520,15 @@ def test_sim_hard_multi_object_end_rows_follow_the_blur():
     assert guard_end_rows(DecodeParams(blur_sigma_along_px=1.0)) == 1
     assert guard_end_rows(DecodeParams(blur_sigma_along_px=3.0, rim_end_rows=1)) == 1
     err = sim.point_errors_mm(r, s.xyz, s.valid)
-    s1 = Scanner(cal, decode_params=DecodeParams(rim_end_rows=1)).scan(r.image)
+    s1 = Scanner(cal, decode_params=DecodeParams(rim_end_rows=1, step_guard_ratio=0)).scan(r.image)
     err1 = sim.point_errors_mm(r, s1.xyz, s1.valid)
+    # the brightness-step guard sees the same edge (the wall is dimmer than the box) on its own
+    s2 = Scanner(cal, decode_params=DecodeParams(rim_end_rows=1)).scan(r.image)
+    err2 = sim.point_errors_mm(r, s2.xyz, s2.valid)
     print(f"hard multi-object: worst {err.max():.2f} mm, {int((err > 3).sum())} > 3 mm "
-          f"(one end row: worst {err1.max():.1f} mm, {int((err1 > 3).sum())} > 3 mm)")
-    assert (err > 3).sum() == 0
+          f"(one end row, no step guard: worst {err1.max():.1f} mm, {int((err1 > 3).sum())} > 3 mm; "
+          f"one end row with it: worst {err2.max():.1f} mm)")
+    assert (err > 3).sum() == 0 and (err2 > 3).sum() == 0
     assert (err1 > 3).sum() >= 1
 
 
