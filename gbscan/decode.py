@@ -1155,9 +1155,9 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         cls.reason, cls.labels, region, un.relative, column_rel, un.inconsistent, reg_shift, reg_indexed,
         reg_margin, cls.contrast, int(pattern.stripe_px), int(pattern.n_stripes), float(params.min_contrast),
         len(REASONS))
-    rim_guard(mask, column, stripe, conf, guard_rows(params), counts, guard_end_rows(params),
-              bool(params.rim_guard_no_boundary))
-    step_guard(img, mask, column, stripe, conf, region, params, counts)
+    n_guard = rim_guard(mask, column, stripe, conf, guard_rows(params), counts, guard_end_rows(params),
+                        bool(params.rim_guard_no_boundary))
+    n_step = step_guard(img, mask, column, stripe, conf, region, params, counts)
     n_orphans = int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED))
     if n_orphans:
         counts[OK] -= n_orphans
@@ -1173,6 +1173,8 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     stats["region_why"] = {k: int(v) for k, v in zip(*np.unique(np.array(idx.why, dtype=object).astype(str),
                                                                   return_counts=True))} if n_reg else {}
     stats["boundaries"] = int(np.isfinite(jx).sum())
+    # of the "rim" pixels: masked by the guard rows (rim_guard) and by the brightness-step guard
+    stats["rim_guard_px"], stats["rim_step_px"] = int(n_guard), int(n_step)
     stats["ms"] = {k: round(v, 3) for k, v in ms.items()}
     stats["blur_sigma_along_px"] = float(params.blur_sigma_along_px)
     if snr is not None:

@@ -1519,5 +1519,8 @@ def test_sim_hard_multi_object_step_guard_removes_stripes_carried_onto_the_wall(
     assert wrong(sm0) >= 5 and wrong(sm) == 0
     assert sm0.valid.sum() - 100 < sm.valid.sum() < sm0.valid.sum()
     assert sm.stats["reasons"]["rim"] == (sm.mask == decode_module.RIM).sum()
+    # the stats say how many the step guard masked; without it none
+    assert sm0.stats["rim_step_px"] == 0 and 0 < sm.stats["rim_step_px"] < 100
+    assert sm.stats["rim_guard_px"] > 0
     with pytest.raises(GBError, match="step_guard_ratio"):
         DecodeParams(step_guard_ratio=0.5)
