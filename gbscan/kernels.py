@@ -57,7 +57,7 @@ def _merge_runs_pass(rs, re, rl, nr, gaps, limit_px):
 
 
 @njit(cache=True, nogil=True)
-def _marker_flank_pass(rs, re, rl, nr, limit_px, max_gap_px):
+def _marker_flank_pass(rs, re, rl, nr, limit_px, max_gap_px, end_flank=False):
     """Absorb the mixed-pixel runs beside a marker (in place; returns the new run count).
 
     A cyan marker replaces one stripe, so its flanks always carry one colour (``X C X``).  Where a
@@ -74,13 +74,25 @@ def _marker_flank_pass(rs, re, rl, nr, limit_px, max_gap_px):
     real stripe whose twin across the marker was lost (``X Y C X`` with ``Y`` real): on the 35
     scenes of ``scripts/sweep_decode.py`` (left flanks) 362 of the 367 short runs beside a cyan run
     of 5 px or more were mixed pixels, but only 98 of 255 beside narrower ones; hence the marker's
-    width test."""
-    if nr < 4 or limit_px <= 0:
+    width test.
+
+    ``end_flank``: also at a row stretch's end (``. Y C X``: the run before ``Y`` unlabelled, or
+    ``Y`` the row's first run; mirrored after the marker), a *one*-pixel run ``Y`` whose colour
+    differs from the marker's other flank ``X`` is unlabelled, whatever the marker's width: the
+    mixed pixel of a marker and the dark beyond (a shadow's or a silhouette's edge, where stripes
+    are seen wide).  Otherwise ``Y C`` ends up a fragment of its own and the marker, the
+    strongest evidence for the absolute index, is lost to its surface.  Two-pixel runs are left
+    alone: dropping them put real markers a stripe off their surface (the real face turned 30
+    degrees lost a 2800 px region to an ambiguous index)."""
+    if nr < 2 or limit_px <= 0:
         return nr
     DEL = np.uint8(255)
     for i in range(1, nr - 1):
-        if rl[i] != CYAN or re[i] - rs[i] + 1 <= 2 * limit_px:
-            continue   # not a marker, or not one seen wide (where a short run may be a real stripe)
+        if rl[i] != CYAN:
+            continue
+        wide = re[i] - rs[i] + 1 > 2 * limit_px   # (beside a narrow marker a short run may be a real stripe)
+        if not wide and not end_flank:
+            continue
         # the first coloured run right of the marker (through a small gap)
         r = i + 1
         if rl[r] == NONE and re[r] - rs[r] + 1 <= max_gap_px and r + 1 < nr:
@@ -93,21 +105,33 @@ def _marker_flank_pass(rs, re, rl, nr, limit_px, max_gap_px):
         left_col = rl[l]
         if l >= 1 and (rl[l] == GREEN or rl[l] == BLUE) and re[l] - rs[l] + 1 <= limit_px:
             ll = l - 1
-            if (rl[ll] == GREEN or rl[ll] == BLUE) and rl[ll] != rl[l] and re[ll] + 1 == rs[l] \
+            if wide and (rl[ll] == GREEN or rl[ll] == BLUE) and rl[ll] != rl[l] and re[ll] + 1 == rs[l] \
                     and re[ll] - rs[ll] + 1 > limit_px and rl[r] == rl[ll]:
                 re[ll] = re[l]
                 rl[l] = DEL
                 left_col = rl[ll]
+            elif end_flank and rl[ll] == NONE and (rl[r] == GREEN or rl[r] == BLUE) and rl[r] != rl[l] and re[l] == rs[l]:
+                rl[l] = NONE   # a stretch's first run, short, against the marker's other flank
+                left_col = NONE
+        elif end_flank and l == 0 and (rl[l] == GREEN or rl[l] == BLUE) and re[l] == rs[l] \
+                and (rl[r] == GREEN or rl[r] == BLUE) and rl[r] != rl[l]:
+            rl[l] = NONE
+            left_col = NONE
         # right flank: the same, mirrored, against the (repaired) left flank's colour
         r = i + 1
         if rl[r] == NONE and re[r] - rs[r] + 1 <= max_gap_px and r + 1 < nr:
             r += 1
         if r + 1 < nr and (rl[r] == GREEN or rl[r] == BLUE) and re[r] - rs[r] + 1 <= limit_px:
             rr = r + 1
-            if (rl[rr] == GREEN or rl[rr] == BLUE) and rl[rr] != rl[r] and rs[rr] == re[r] + 1 \
+            if wide and (rl[rr] == GREEN or rl[rr] == BLUE) and rl[rr] != rl[r] and rs[rr] == re[r] + 1 \
                     and re[rr] - rs[rr] + 1 > limit_px and left_col == rl[rr]:
                 rs[rr] = rs[r]
                 rl[r] = DEL
+            elif end_flank and rl[rr] == NONE and (left_col == GREEN or left_col == BLUE) and left_col != rl[r] and re[r] == rs[r]:
+                rl[r] = NONE   # a stretch's last run, short, against the marker's other flank
+        elif end_flank and r == nr - 1 and (rl[r] == GREEN or rl[r] == BLUE) and re[r] == rs[r] \
+                and (left_col == GREEN or left_col == BLUE) and left_col != rl[r]:
+            rl[r] = NONE
     m = 0
     for i in range(nr):
         if rl[i] != DEL:
@@ -119,7 +143,7 @@ def _marker_flank_pass(rs, re, rl, nr, limit_px, max_gap_px):
 
 
 @njit(cache=True, nogil=True)
-def row_segments(labels, max_gap_px, spike_px, marker_flank_px=0):
+def row_segments(labels, max_gap_px, spike_px, marker_flank_px=0, end_flank=False):
     """Paper step 1 kernel: unroll each row by the transitions along it.
 
     Returns per pixel ``seg`` (H, W) int32 (-1 outside segments) and ``rel`` (H, W) int32;
@@ -133,7 +157,8 @@ def row_segments(labels, max_gap_px, spike_px, marker_flank_px=0):
     ``max_gap_px`` between different colours are a transition, between equal colours the same
     stripe; with ``marker_flank_px`` > 0 a run of at most that many px between a marker and a
     longer run of the other colour, against the marker's other flank, is a mixed-pixel artefact
-    and is absorbed (:func:`_marker_flank_pass`); any other gap, or a colour whose parity
+    and is absorbed (:func:`_marker_flank_pass`; with ``end_flank`` a 1 px run between a marker
+    and the end of the stretch too); any other gap, or a colour whose parity
     contradicts the count of transitions (e.g. ``G C B``: a marker is always flanked by equal
     colours), ends the segment.
     """
@@ -190,7 +215,7 @@ def row_segments(labels, max_gap_px, spike_px, marker_flank_px=0):
             nr = _merge_runs_pass(rs, re, rl, nr, True, max_gap_px)
         # -- mixed pixels beside a marker classified as the other colour (X Y C X -> X C X)
         if marker_flank_px > 0:
-            nr = _marker_flank_pass(rs, re, rl, nr, marker_flank_px, max_gap_px)
+            nr = _marker_flank_pass(rs, re, rl, nr, marker_flank_px, max_gap_px, end_flank)
         # -- walk runs into segments
         k = 0
         while k < nr:

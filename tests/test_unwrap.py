@@ -1004,3 +1004,31 @@ def test_interpolate_columns_contact_gap(gap_px, contact_gap_px, cut):
     a_end = np.arange(27, 30)
     assert np.all(np.isfinite(ref[a_end]))
     assert np.all(np.isnan(col[a_end])) == cut and np.all(np.isfinite(col[a_end])) == (not cut)
+
+
+def test_unroll_rows_drops_a_one_pixel_flank_between_a_marker_and_the_dark():
+    """At a shadow's or silhouette's edge through a marker, the pixel mixing the marker and the
+    dark can come out as the colour that contradicts the marker's other flank (``. G C B``): the
+    row then splits into a fragment ``G C`` and the rest, and the marker is lost to its surface.
+    ``marker_end_flank`` unlabels that pixel (1 px only, any marker width; mirrored at the
+    stretch's right end, and at the image border); a 2 px run, or one that agrees with the other
+    flank (``. B C B``: a real stripe), is left alone."""
+    lab = row_from_stripes([N, G, C, B, G, B], [3, 1, 3, 4, 4, 4])[None]
+    s = uw.unroll_rows(lab)
+    assert s.n == 1 and s.u0[0] == 4 and s.u1[0] == 18
+    assert s.seg[0, 3] == -1 and lab[0, 3] == G          # the dropped pixel: outside any segment
+    assert s.rel[0, 4] % 2 == 0 and s.rel[0, 7] == s.rel[0, 4] + 1   # flanked by blue: a green stripe's place
+    s0 = uw.unroll_rows(lab, marker_end_flank=False)
+    assert s0.n == 2 and s0.u1[0] == 6                   # the fragment G C
+    # mirrored, and at the image border (no dark run beyond the pixel)
+    lab = row_from_stripes([B, G, B, C, G, N], [4, 4, 4, 3, 1, 3])[None]
+    s = uw.unroll_rows(lab)
+    assert s.n == 1 and s.u0[0] == 0 and s.u1[0] == 14
+    assert uw.unroll_rows(row_from_stripes([G, C, B, G], [1, 3, 4, 4])[None]).n == 1
+    assert uw.unroll_rows(row_from_stripes([G, C, B, G], [1, 3, 4, 4])[None], marker_end_flank=False).n == 2
+    # left alone: two pixels; or a colour that agrees with the other flank
+    assert uw.unroll_rows(row_from_stripes([N, G, C, B, G], [3, 2, 3, 4, 4])[None]).n == 2
+    s = uw.unroll_rows(row_from_stripes([N, B, C, B, G], [3, 1, 3, 4, 4])[None])
+    assert s.n == 1 and s.u0[0] == 3
+    # and without the flank pass at all (marker_flank_px=0) nothing changes
+    assert uw.unroll_rows(lab, marker_flank_px=0).n == 2
