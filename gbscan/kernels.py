@@ -57,6 +57,15 @@ def _merge_runs_pass(rs, re, rl, nr, gaps, limit_px):
 
 
 @njit(cache=True, nogil=True)
+def _end_pixel(rl, rs, re, k, beyond, other):
+    # _marker_flank_pass's end_flank test: run k is one green or blue pixel whose neighbour away
+    # from the marker (run ``beyond``; -1: the image side) is unlabelled, and whose colour
+    # contradicts ``other``, the marker's other flank (green or blue)
+    return ((rl[k] == GREEN or rl[k] == BLUE) and re[k] == rs[k] and (beyond < 0 or rl[beyond] == NONE)
+            and (other == GREEN or other == BLUE) and other != rl[k])
+
+
+@njit(cache=True, nogil=True)
 def _marker_flank_pass(rs, re, rl, nr, limit_px, max_gap_px, end_flank=False):
     """Absorb the mixed-pixel runs beside a marker (in place; returns the new run count).
 
@@ -110,12 +119,8 @@ def _marker_flank_pass(rs, re, rl, nr, limit_px, max_gap_px, end_flank=False):
                 re[ll] = re[l]
                 rl[l] = DEL
                 left_col = rl[ll]
-            elif end_flank and rl[ll] == NONE and (rl[r] == GREEN or rl[r] == BLUE) and rl[r] != rl[l] and re[l] == rs[l]:
-                rl[l] = NONE   # a stretch's first run, short, against the marker's other flank
-                left_col = NONE
-        elif end_flank and l == 0 and (rl[l] == GREEN or rl[l] == BLUE) and re[l] == rs[l] \
-                and (rl[r] == GREEN or rl[r] == BLUE) and rl[r] != rl[l]:
-            rl[l] = NONE
+        if end_flank and _end_pixel(rl, rs, re, l, l - 1, rl[r]):
+            rl[l] = NONE   # the stretch's first run: one pixel against the marker's other flank
             left_col = NONE
         # right flank: the same, mirrored, against the (repaired) left flank's colour
         r = i + 1
@@ -127,11 +132,8 @@ def _marker_flank_pass(rs, re, rl, nr, limit_px, max_gap_px, end_flank=False):
                     and re[rr] - rs[rr] + 1 > limit_px and left_col == rl[rr]:
                 rs[rr] = rs[r]
                 rl[r] = DEL
-            elif end_flank and rl[rr] == NONE and (left_col == GREEN or left_col == BLUE) and left_col != rl[r] and re[r] == rs[r]:
-                rl[r] = NONE   # a stretch's last run, short, against the marker's other flank
-        elif end_flank and r == nr - 1 and (rl[r] == GREEN or rl[r] == BLUE) and re[r] == rs[r] \
-                and (left_col == GREEN or left_col == BLUE) and left_col != rl[r]:
-            rl[r] = NONE
+        if end_flank and _end_pixel(rl, rs, re, r, r + 1 if r + 1 < nr else -1, left_col):
+            rl[r] = NONE   # the stretch's last run: one pixel against the marker's other flank
     m = 0
     for i in range(nr):
         if rl[i] != DEL:

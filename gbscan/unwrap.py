@@ -103,8 +103,9 @@ class UnwrapParams:
     marker_end_flank : (with ``marker_flank_px`` > 0) at the end of a row stretch (``. Y C X``,
         mirrored ``X C Y .``) a 1 px run ``Y`` between a marker (of any width) and the dark, whose
         colour contradicts the marker's other flank, is the mixed pixel of the marker and the dark
-        and is unlabelled, so the marker stays with its surface instead of ending up a fragment ``Y C`` of its own (mask
-        "isolated"), where a shadow or silhouette cuts through a marker stripe.  Measured
+        and is unlabelled, so the marker stays with its surface instead of ending up a fragment
+        ``Y C`` of its own (mask "isolated"), where a shadow or silhouette cuts through a marker
+        stripe.  Measured
         (``scripts/sweep_decode.py``, 48 scenes): the real face 80.73 -> 81.38 % reported (frontal)
         and +0.04 to +0.5 on the other renders, the others 0 to +0.05; wrong pixels unchanged at
         every fixed blur 1 ... 3 px.  Scans (``scripts/coverage_study.py``): real face seeds 0-2
