@@ -93,9 +93,10 @@ class DecodeParams:
     extrapolate : pixels beyond a segment's last boundary get a column up to this many
         stripe widths away (0: only pixels between two boundaries).
     contact_ratio, contact_gap_px : a segment end that touches the next segment of its row (at
-        most ``contact_gap_px`` pixels between them) is not extrapolated (``extrapolate``) when the boundary spacing jumps across
-        the contact by more than this factor (0: always extrapolated): the two rows of stripes
-        meet at a depth edge, and the run the edge cuts may carry the other surface's colours
+        most ``contact_gap_px`` pixels between them) is not extrapolated (``extrapolate``) when the
+        boundary spacing jumps across the contact by more than this factor (0: always
+        extrapolated): the two rows of stripes meet at a depth edge, and the run the edge cuts may
+        carry the other surface's colours
         (mixed pixels, the aliased stripes of a surface seen at grazing incidence, a colour
         camera's demosaicing).  A segment split on one surface keeps its spacing and is
         extrapolated as before (:func:`gbscan.kernels.interpolate_columns`).  On the sweep's
@@ -709,6 +710,13 @@ def guard_end_rows(params: DecodeParams) -> int:
     return _rows_or_sigma(params.rim_end_rows, params)
 
 
+def _unreported(counts: np.ndarray | None, n: int, code: int) -> None:
+    # a later mask took n reported pixels to ``code``: move them in the code counts (when given)
+    if n and counts is not None:
+        counts[OK] -= n
+        counts[code] += n
+
+
 def rim_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confidence: np.ndarray,
               rows: int, counts: np.ndarray | None = None, end_rows: int = 0, no_boundary: bool = False) -> int:
     """Mask ``RIM`` the reported pixels within ``rows`` rows (along the stripes) of a pixel whose
@@ -735,9 +743,7 @@ def rim_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confiden
     n = int(kernels.rim_guard_rows(mask, column, stripe, confidence, UNINDEXED, ISOLATED, DARK, LOW_CONTRAST, RIM,
                                    rows if rows > 0 else -1, end_rows if end_rows > 0 else -1, OK, RIM, near,
                                    NO_BOUNDARY if no_boundary else -1))
-    if n and counts is not None:
-        counts[OK] -= n
-        counts[RIM] += n
+    _unreported(counts, n, RIM)
     return n
 
 
@@ -764,8 +770,9 @@ def step_guard(image_rgb: np.ndarray, mask: np.ndarray, column: np.ndarray, stri
     its index: off by an even number of stripes, colours and markers agreeing.  What shows the
     edge is the *unblurred* brightness: a step along the column inside one region.  A
     phase-blind brightness (linear green + blue over about one period of the row,
-    :func:`gbscan.kernels.step_guard`) is compared across each row boundary of a region's stretch along a column
-    (``STEP_HALF_ROWS`` rows either side, the two rows at the boundary skipped); where one side is
+    :func:`gbscan.kernels.step_guard`) is compared across each row boundary of a region's stretch
+    along a column (``STEP_HALF_ROWS`` rows either side, the two rows at the boundary skipped);
+    where one side is
     more than ``params.step_guard_ratio`` times brighter, the dim side is flat (a surface, not the
     ramp of a shadow or of the light field's edge, where carried stripes are the same surface's),
     and the stretch ends on the dim side within ``STEP_REACH_SIGMAS`` blur sigmas, the dim side
@@ -781,9 +788,7 @@ def step_guard(image_rgb: np.ndarray, mask: np.ndarray, column: np.ndarray, stri
     n = int(kernels.step_guard(np.ascontiguousarray(image_rgb), gamma_lut(params.camera_gamma), STEP_BOX_PX,
                                np.ascontiguousarray(region, dtype=np.int32), mask, column, stripe, confidence,
                                reach, np.float32(ratio), STEP_HALF_ROWS, np.float32(STEP_FLAT), OK, RIM))
-    if n and counts is not None:
-        counts[OK] -= n
-        counts[RIM] += n
+    _unreported(counts, n, RIM)
     return n
 
 
@@ -1158,10 +1163,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     n_guard = rim_guard(mask, column, stripe, conf, guard_rows(params), counts, guard_end_rows(params),
                         bool(params.rim_guard_no_boundary))
     n_step = step_guard(img, mask, column, stripe, conf, region, params, counts)
-    n_orphans = int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED))
-    if n_orphans:
-        counts[OK] -= n_orphans
-        counts[ISOLATED] += n_orphans
+    _unreported(counts, int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED)), ISOLATED)
     t7 = time.perf_counter()
     ms["finish"] = (t7 - t6) * 1e3
     ms["total"] = (t7 - t0) * 1e3
