@@ -7,13 +7,16 @@ Organised point clouds on disk
 ------------------------------
 ``gbscan scan`` writes its cloud as a binary little-endian PLY whose vertices carry, besides
 ``x y z nx ny nz`` (float32, mm), the decoder ``confidence`` (float32) and the camera pixel they
-came from, ``row`` and ``col`` (int32), and a header comment ``gbscan_grid WIDTH HEIGHT``.  Any
-PLY reader (MeshLab, CloudCompare, open3d, Blender) reads the points and normals and ignores or
-keeps the extra properties; ``gbscan mesh --method grid`` uses them to rebuild the organised
-grid.  A PLY without them can still be meshed with ``--method poisson``.
+came from, ``row`` and ``col`` (int32), then, when the scan has its frame, the stripe-free grey
+texture as ``red green blue`` (uchar, :mod:`gbscan.texture`), and a header comment
+``gbscan_grid WIDTH HEIGHT``.  Any PLY reader (MeshLab, CloudCompare, open3d, Blender) reads the
+points, normals and colours and ignores or keeps the extra properties; ``gbscan mesh --method
+grid`` uses them to rebuild the organised grid.  A PLY without them can still be meshed with
+``--method poisson``.
 
-Mesh files: ``.ply`` (binary, vertex normals), ``.obj`` (text, ``v``/``vn``/``f v//vn``), ``.stl``
-(binary, triangle normals).  All writes are atomic (:func:`gbscan.io.atomic_path`).
+Mesh files: ``.ply`` (binary, vertex normals, vertex colours when the mesh has them), ``.obj``
+(text, ``v``/``vn``/``f v//vn``), ``.stl`` (binary, triangle normals); OBJ and STL carry no
+colours.  All writes are atomic (:func:`gbscan.io.atomic_path`).
 """
 from __future__ import annotations
 
@@ -37,18 +40,22 @@ class Mesh:
         (for scans: from the camera).
     vertex_normals : (V, 3) float64 unit normals or None (computed on demand).
     pixel : (V, 2) int32 camera pixel ``(row, col)`` of each vertex of a grid mesh, else None.
+    colors : (V, 3) uint8 RGB vertex colours (a scan's grey texture) or None.
     """
 
     vertices: np.ndarray
     triangles: np.ndarray
     vertex_normals: np.ndarray | None = None
     pixel: np.ndarray | None = None
+    colors: np.ndarray | None = None
 
     def __post_init__(self):
         self.vertices = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
         self.triangles = np.asarray(self.triangles, dtype=np.int64).reshape(-1, 3)
         if self.triangles.size and (self.triangles.min() < 0 or self.triangles.max() >= len(self.vertices)):
             raise GBError("mesh: triangle indices out of range")
+        if self.colors is not None:
+            self.colors = _colors_u8(self.colors, len(self.vertices), "mesh colors")
 
     @property
     def n_vertices(self) -> int:
@@ -71,13 +78,33 @@ class Mesh:
         m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices),
                                       o3d.utility.Vector3iVector(self.triangles.astype(np.int32)))
         m.vertex_normals = o3d.utility.Vector3dVector(np.nan_to_num(self.normals()))
+        if self.colors is not None:
+            m.vertex_colors = o3d.utility.Vector3dVector(self.colors.astype(np.float64) / 255.0)
         return m
 
     @classmethod
     def from_open3d(cls, m) -> "Mesh":
         v = np.asarray(m.vertices)
         n = np.asarray(m.vertex_normals) if m.has_vertex_normals() else None
-        return cls(v.copy(), np.asarray(m.triangles).copy(), None if n is None else n.copy())
+        c = _colors_from_unit(np.asarray(m.vertex_colors)) if m.has_vertex_colors() else None
+        return cls(v.copy(), np.asarray(m.triangles).copy(), None if n is None else n.copy(), colors=c)
+
+
+def _colors_u8(colors, n: int, what: str) -> np.ndarray:
+    """(n, 3) uint8 from (n, 3) or (n,) grey uint8 values; GBError naming ``what`` otherwise."""
+    c = np.asarray(colors)
+    if c.dtype != np.uint8:
+        raise GBError(f"{what} must be uint8 (0..255), got {c.dtype}")
+    if c.shape == (n,):
+        c = np.repeat(c[:, None], 3, axis=1)
+    if c.shape != (n, 3):
+        raise GBError(f"{what} must be ({n}, 3) or ({n},), got {c.shape}")
+    return np.ascontiguousarray(c)
+
+
+def _colors_from_unit(c: np.ndarray) -> np.ndarray:
+    """open3d's float colours in [0, 1] (N, 3) -> uint8."""
+    return np.rint(np.clip(c, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
 # -- geometry ----------------------------------------------------------------------------------
@@ -114,7 +141,7 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 
 def grid_mesh(xyz: np.ndarray, valid: np.ndarray | None = None, *, max_jump: float = 0.01,
-              normals: np.ndarray | None = None) -> Mesh:
+              normals: np.ndarray | None = None, colors: np.ndarray | None = None) -> Mesh:
     """Mesh an organised point map: two triangles per 2x2 pixel quad whose four points are valid.
 
     xyz : (H, W, 3) float mm (camera frame), NaN where missing.
@@ -124,6 +151,8 @@ def grid_mesh(xyz: np.ndarray, valid: np.ndarray | None = None, *, max_jump: flo
     normals : optional (H, W, 3) normals of the grid (e.g. ``Scan.normals_map``) to use as vertex
         normals where they are finite and non-zero; area-weighted from the triangles elsewhere,
         and everywhere without ``normals``.
+    colors : optional (H, W, 3) or (H, W) grey uint8 colours of the grid (e.g. ``Scan.grey()``)
+        for the vertices (``Mesh.colors``).
 
     Vertices are the valid pixels used by a triangle, in raster order (``Mesh.pixel`` gives their
     (row, col)); triangles face the camera.
@@ -151,10 +180,18 @@ def grid_mesh(xyz: np.ndarray, valid: np.ndarray | None = None, *, max_jump: flo
         normals = np.ascontiguousarray(normals)
     else:
         normals = np.zeros((1, 1, 3))
+    if colors is not None:
+        colors = np.asarray(colors)
+        if colors.dtype != np.uint8 or colors.shape[:2] != (H, W) or colors.ndim not in (2, 3) or \
+                (colors.ndim == 3 and colors.shape[2] != 3):
+            raise GBError(f"grid_mesh: colors are {colors.shape} {colors.dtype}, "
+                          f"expected uint8 {(H, W, 3)} or {(H, W)}")
     # one compiled pass: depths, quads, vertex numbering, triangles, vertex normals
     verts, tris, pixel, vn, has_normal = gk.grid_mesh_arrays(xyz, valid, use_valid, np.float32(max_jump), normals,
                                                              use_normals)
     mesh = Mesh(verts, tris, pixel=pixel)
+    if colors is not None:
+        mesh.colors = _colors_u8(colors[pixel[:, 0], pixel[:, 1]], len(verts), "grid_mesh colors")
     if not use_normals:
         vn = vertex_normals(verts, tris)
     elif not has_normal.all():  # area-weighted where the grid has no normal, only there
@@ -172,7 +209,8 @@ def remove_unreferenced(mesh: Mesh) -> Mesh:
     new = np.cumsum(used) - 1
     return Mesh(mesh.vertices[used], new[mesh.triangles],
                 None if mesh.vertex_normals is None else mesh.vertex_normals[used],
-                None if mesh.pixel is None else mesh.pixel[used])
+                None if mesh.pixel is None else mesh.pixel[used],
+                None if mesh.colors is None else mesh.colors[used])
 
 
 def taubin_smooth(mesh: Mesh, iterations: int = 5, lam: float = 0.5, mu: float = -0.53) -> Mesh:
@@ -201,11 +239,12 @@ def taubin_smooth(mesh: Mesh, iterations: int = 5, lam: float = 0.5, mu: float =
         for f in (lam, mu):
             lap = (A @ v) * inv[:, None] - v
             v += f * np.where(has, lap, 0.0)
-    return Mesh(v, t.copy(), vertex_normals(v, t), None if mesh.pixel is None else mesh.pixel.copy())
+    return Mesh(v, t.copy(), vertex_normals(v, t), None if mesh.pixel is None else mesh.pixel.copy(),
+                None if mesh.colors is None else mesh.colors.copy())
 
 
 def poisson_mesh(points: np.ndarray, normals: np.ndarray, *, depth: int = 9, density_quantile: float = 0.05,
-                 crop_margin: float = 0.02) -> Mesh:
+                 crop_margin: float = 0.02, colors: np.ndarray | None = None) -> Mesh:
     """Screened Poisson surface (open3d) of an oriented cloud, trimmed to where data was.
 
     points, normals : (N, 3) mm and unit normals (oriented, e.g. towards the camera).
@@ -213,6 +252,8 @@ def poisson_mesh(points: np.ndarray, normals: np.ndarray, *, depth: int = 9, den
     density_quantile : vertices whose Poisson density (points supporting them) is in this lowest
         fraction are removed -- Poisson closes the surface far from the data; this cuts it back.
     crop_margin : also remove vertices outside the cloud's bounding box grown by this fraction.
+    colors : optional (N, 3) uint8 point colours; the surface's vertices get open3d's
+        interpolation of them (``Mesh.colors``).
     """
     import open3d as o3d
 
@@ -225,6 +266,9 @@ def poisson_mesh(points: np.ndarray, normals: np.ndarray, *, depth: int = 9, den
     good = np.isfinite(points).all(1) & np.isfinite(normals).all(1) & (np.linalg.norm(normals, axis=1) > 0)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[good]))
     pcd.normals = o3d.utility.Vector3dVector(normals[good])
+    if colors is not None:
+        colors = _colors_u8(colors, len(points), "poisson_mesh colors")
+        pcd.colors = o3d.utility.Vector3dVector(colors[good].astype(np.float64) / 255.0)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         m, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=int(depth))
     dens = np.asarray(dens)
@@ -236,7 +280,8 @@ def poisson_mesh(points: np.ndarray, normals: np.ndarray, *, depth: int = 9, den
         keep &= dens >= np.quantile(dens, density_quantile)
     m.remove_vertices_by_mask(~keep)
     m.remove_unreferenced_vertices()
-    out = Mesh(np.asarray(m.vertices).copy(), np.asarray(m.triangles).copy())
+    out = Mesh(np.asarray(m.vertices).copy(), np.asarray(m.triangles).copy(),
+               colors=_colors_from_unit(np.asarray(m.vertex_colors)) if colors is not None else None)
     out.vertex_normals = vertex_normals(out.vertices, out.triangles)
     return out
 
@@ -245,13 +290,15 @@ def poisson_mesh(points: np.ndarray, normals: np.ndarray, *, depth: int = 9, den
 @dataclass(eq=False)
 class Cloud:
     """A point cloud read from disk: points (N, 3) mm, normals (N, 3) or None, confidence (N,)
-    or None, pixel (N, 2) int (row, col) or None, grid_size (width, height) or None."""
+    or None, pixel (N, 2) int (row, col) or None, grid_size (width, height) or None, colors
+    (N, 3) uint8 RGB or None."""
 
     points: np.ndarray
     normals: np.ndarray | None = None
     confidence: np.ndarray | None = None
     pixel: np.ndarray | None = None
     grid_size: tuple[int, int] | None = None
+    colors: np.ndarray | None = None
 
     @property
     def organised(self) -> bool:
@@ -265,26 +312,32 @@ class Cloud:
         r, c = self.pixel[:, 0], self.pixel[:, 1]
         if r.size and (r.min() < 0 or c.min() < 0 or r.max() >= H or c.max() >= W):
             raise GBError(f"cloud pixel rows/cols fall outside its {W}x{H} grid")
-        xyz = np.full((H, W, 3), np.nan)
-        xyz[r, c] = self.points
+        xyz = self._on_grid(self.points, np.nan)
         return xyz, np.isfinite(xyz).all(-1)
+
+    def _on_grid(self, values: np.ndarray, fill) -> np.ndarray:
+        """(H, W, 3) map of per-point ``values`` (N, 3) at their pixels, ``fill`` elsewhere."""
+        W, H = self.grid_size
+        out = np.full((H, W, 3), fill, dtype=np.float64 if fill is np.nan else values.dtype)
+        out[self.pixel[:, 0], self.pixel[:, 1]] = values
+        return out
 
     def normal_grid(self) -> np.ndarray | None:
         """(H, W, 3) normals on the pixel grid (NaN where no point), or None without normals."""
-        if self.normals is None or not self.organised:
-            return None
-        W, H = self.grid_size
-        n = np.full((H, W, 3), np.nan)
-        n[self.pixel[:, 0], self.pixel[:, 1]] = self.normals
-        return n
+        return self._on_grid(self.normals, np.nan) if self.normals is not None and self.organised else None
+
+    def color_grid(self) -> np.ndarray | None:
+        """(H, W, 3) uint8 colours on the pixel grid (0 where no point), or None without colours."""
+        return self._on_grid(self.colors, 0) if self.colors is not None and self.organised else None
 
 
 def write_cloud_ply(path, points: np.ndarray, normals: np.ndarray | None = None, *,
                     confidence: np.ndarray | None = None, pixel: np.ndarray | None = None,
-                    grid_size: tuple[int, int] | None = None) -> Path:
+                    grid_size: tuple[int, int] | None = None, colors: np.ndarray | None = None) -> Path:
     """Write a binary PLY point cloud atomically (see the module docstring for the layout).
 
-    points (N, 3) mm; normals (N, 3); confidence (N,); pixel (N, 2) (row, col); grid_size (W, H).
+    points (N, 3) mm; normals (N, 3); confidence (N,); pixel (N, 2) (row, col); grid_size (W, H);
+    colors (N, 3) or (N,) grey uint8.
     """
     points = np.asarray(points).reshape(-1, 3)
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
@@ -294,6 +347,9 @@ def write_cloud_ply(path, points: np.ndarray, normals: np.ndarray | None = None,
         fields += [("confidence", "<f4")]
     if pixel is not None:
         fields += [("row", "<i4"), ("col", "<i4")]
+    if colors is not None:
+        colors = _colors_u8(colors, len(points), "write_cloud_ply colors")
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
     rec = np.empty(len(points), dtype=np.dtype(fields))
     rec["x"], rec["y"], rec["z"] = points[:, 0], points[:, 1], points[:, 2]
     if normals is not None:
@@ -304,6 +360,8 @@ def write_cloud_ply(path, points: np.ndarray, normals: np.ndarray | None = None,
     if pixel is not None:
         pixel = np.asarray(pixel).reshape(-1, 2)
         rec["row"], rec["col"] = pixel[:, 0], pixel[:, 1]
+    if colors is not None:
+        rec["red"], rec["green"], rec["blue"] = colors[:, 0], colors[:, 1], colors[:, 2]
     comments = ["gbscan point cloud, camera frame (x right, y down, z forward), mm"]
     if pixel is not None and grid_size is not None:
         comments.append(f"gbscan_grid {int(grid_size[0])} {int(grid_size[1])}")
@@ -311,12 +369,13 @@ def write_cloud_ply(path, points: np.ndarray, normals: np.ndarray | None = None,
 
 
 def write_grid_cloud_ply(path, xyz: np.ndarray, normals: np.ndarray, confidence: np.ndarray,
-                         reason: np.ndarray) -> Path:
+                         reason: np.ndarray, colors: np.ndarray | None = None) -> Path:
     """Write the kept pixels (``reason == 0``) of an organised scan as the PLY of
-    :func:`write_cloud_ply` with normals, confidence, pixel and grid size -- the same bytes --
-    in one compiled pass over the maps (no per-field gathers).
+    :func:`write_cloud_ply` with normals, confidence, pixel, grid size and (when given) colours
+    -- the same bytes -- in one compiled pass over the maps (no per-field gathers).
 
-    xyz, normals : (H, W, 3) float32; confidence : (H, W) float32; reason : (H, W) uint8.
+    xyz, normals : (H, W, 3) float32; confidence : (H, W) float32; reason : (H, W) uint8;
+    colors : (H, W, 3) or (H, W) grey uint8, or None.
     """
     from . import geomkernels as gk
 
@@ -332,7 +391,20 @@ def write_grid_cloud_ply(path, xyz: np.ndarray, normals: np.ndarray, confidence:
                   np.ascontiguousarray(confidence, dtype=np.float32), reason, True, True, True, arr, arr.view(np.int32))
     fields = [(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz", "confidence")] + [("row", "<i4"), ("col", "<i4")]
     comments = ["gbscan point cloud, camera frame (x right, y down, z forward), mm", f"gbscan_grid {W} {H}"]
-    return _write_ply(path, arr.view(np.dtype(fields)).reshape(-1), None, comments)
+    rec = arr.view(np.dtype(fields)).reshape(-1)
+    if colors is not None:
+        colors = np.asarray(colors)
+        if colors.dtype != np.uint8 or colors.shape not in ((H, W), (H, W, 3)):
+            raise GBError(f"write_grid_cloud_ply: colors are {colors.shape} {colors.dtype}, "
+                          f"expected uint8 {(H, W, 3)} or {(H, W)}")
+        ok = reason == 0
+        c = colors[ok]
+        crec = np.empty(n, np.dtype(fields + [("red", "u1"), ("green", "u1"), ("blue", "u1")]))
+        b = crec.view(np.uint8).reshape(n, 39)
+        b[:, :36] = arr.view(np.uint8).reshape(n, 36)
+        b[:, 36:] = c[:, None] if c.ndim == 1 else c
+        rec = crec
+    return _write_ply(path, rec, None, comments)
 
 
 def read_cloud_ply(path) -> Cloud:
@@ -385,7 +457,13 @@ def read_cloud_ply(path) -> Cloud:
     conf = rec["confidence"].astype(np.float32) if "confidence" in rec else None
     pix = (np.stack([rec["row"], rec["col"]], axis=1).astype(np.int64)
            if "row" in rec and "col" in rec else None)
-    return Cloud(pts, nrm, conf, pix, grid if pix is not None else None)
+    col = None
+    if all(k in rec for k in ("red", "green", "blue")):
+        col = np.stack([rec["red"], rec["green"], rec["blue"]], axis=1)
+        if col.dtype != np.uint8:  # float colours in [0, 1] (some writers), or wider integers
+            col = (_colors_from_unit(col.astype(np.float64)) if np.issubdtype(col.dtype, np.floating)
+                   else np.clip(col, 0, 255).astype(np.uint8))
+    return Cloud(pts, nrm, conf, pix, grid if pix is not None else None, col)
 
 
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
@@ -426,7 +504,7 @@ def _parse_ply_header(path: Path):
 
 
 def _write_ply(path, vertex_rec: np.ndarray, faces: np.ndarray | None, comments: list[str]) -> Path:
-    inv = {"<f4": "float", "<i4": "int", "<u1": "uchar", "<f8": "double"}
+    inv = {"<f4": "float", "<i4": "int", "<u1": "uchar", "|u1": "uchar", "<f8": "double"}
     lines = ["ply", "format binary_little_endian 1.0"]
     lines += [f"comment {c}" for c in comments]
     lines.append(f"element vertex {len(vertex_rec)}")
@@ -469,7 +547,14 @@ def write_mesh(path, mesh: Mesh) -> Path:
         arr = np.empty((len(v), 6), np.float32)  # x y z nx ny nz, viewed as the vertex records
         arr[:, :3] = v
         arr[:, 3:] = n
-        rec = arr.view(np.dtype([(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz")])).reshape(-1)
+        fields = [(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz")]
+        rec = arr.view(np.dtype(fields)).reshape(-1)
+        if mesh.colors is not None:  # + red green blue (uchar): 27-byte records
+            crec = np.empty(len(v), np.dtype(fields + [("red", "u1"), ("green", "u1"), ("blue", "u1")]))
+            b = crec.view(np.uint8).reshape(len(v), 27)
+            b[:, :24] = arr.view(np.uint8).reshape(len(v), 24)
+            b[:, 24:] = mesh.colors
+            rec = crec
         return _write_ply(path, rec, mesh.triangles, ["gbscan mesh, camera frame, mm"])
     if suffix == ".obj":
         parts = [b"# gbscan mesh, camera frame (x right, y down, z forward), mm\n",

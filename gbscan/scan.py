@@ -7,7 +7,8 @@ scan = scanner.scan(image_rgb)                # (H, W, 3) uint8 RGB -> Scan
 scan.points, scan.normals                     # (N, 3) mm camera frame, unit normals to camera
 scan.xyz                                      # (H, W, 3) float32 mm, NaN where no point
 scan.counts                                   # points removed per cleaning filter
-scan.to_open3d(); scan.mesh("grid")           # open3d PointCloud / TriangleMesh
+scan.texture, scan.grey()                     # stripe-free intensity (H, W) float32 / grey uint8
+scan.to_open3d(); scan.mesh("grid")           # open3d PointCloud / TriangleMesh (grey colours)
 ```
 
 Pipeline per frame: :func:`gbscan.decode.decode` (continuous projector column per pixel) ->
@@ -44,6 +45,10 @@ class Scan:
         normals the grazing filter needs), normals (NaN-ing the rejected pixels' xyz and normals), total.
     stripe : (H, W) int32 absolute stripe index from the decoder (-1 none) or None.
     stripemap : the decoder's :class:`gbscan.decode.StripeMap` or None.
+    image : the (H, W, 3) uint8 RGB frame scanned (:meth:`Scanner.scan`) or None; with
+        ``stripemap`` it gives :attr:`texture`.
+    pattern : the projected :class:`gbscan.pattern.PatternSpec` (for :attr:`texture`) or None.
+    camera_gamma : the decoder's ``camera_gamma`` (for :attr:`texture`).
     """
 
     xyz: np.ndarray
@@ -54,6 +59,10 @@ class Scan:
     timings_ms: dict = field(default_factory=dict)
     stripe: np.ndarray | None = None
     stripemap: object = None
+    image: np.ndarray | None = None
+    pattern: PatternSpec | None = None
+    camera_gamma: float = 2.2
+    _texture: np.ndarray | None = field(default=None, init=False, repr=False)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -98,17 +107,45 @@ class Scan:
         """Fraction of the image's pixels that have a point."""
         return self.n_points / self.reason.size
 
+    @property
+    def texture(self) -> np.ndarray | None:
+        """(H, W) float32 stripe-free relative intensity of the kept pixels, NaN elsewhere
+        (:func:`gbscan.texture.intensity` on the scanned frame; 1 = the average decoded
+        pixel).  None without the frame and the decoder's map (:meth:`Scanner.reconstruct` from
+        external columns).  Computed on first use (~3 ms at 640x480)."""
+        if self._texture is None and self.image is not None and self.stripemap is not None:
+            from .texture import intensity
+
+            sm = self.stripemap
+            t = intensity(self.image, sm.column, sm.valid, self.pattern or PatternSpec(),
+                          camera_gamma=self.camera_gamma)
+            t[~self.valid] = np.nan
+            self._texture = t
+        return self._texture
+
+    def grey(self) -> np.ndarray | None:
+        """(H, W) uint8 display grey of :attr:`texture` (:func:`gbscan.texture.to_grey`: the 99.5th
+        percentile of the kept points is white), 0 where no point; None without a texture."""
+        from .texture import to_grey
+
+        t = self.texture
+        return None if t is None else to_grey(t)
+
     def to_open3d(self):
-        """``open3d.geometry.PointCloud`` with normals."""
+        """``open3d.geometry.PointCloud`` with normals (and grey colours when there is a texture)."""
         import open3d as o3d
 
         pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points.astype(np.float64)))
         pc.normals = o3d.utility.Vector3dVector(np.nan_to_num(self.normals.astype(np.float64)))
+        g = self.grey()
+        if g is not None:
+            pc.colors = o3d.utility.Vector3dVector(np.repeat(g[self.valid, None], 3, axis=1) / 255.0)
         return pc
 
     def mesh_arrays(self, method: str = "grid", *, max_jump: float = 0.01, depth: int = 9,
                     density_quantile: float = 0.05, smooth: int = 0):
-        """A :class:`gbscan.mesh.Mesh` (numpy arrays) of this scan.
+        """A :class:`gbscan.mesh.Mesh` (numpy arrays) of this scan, with grey vertex colours when
+        the scan has a :attr:`texture`.
 
         method : "grid" (organised-grid triangulation, fast, default) or "poisson" (open3d).
         smooth : Taubin smoothing iterations applied afterwards.
@@ -117,10 +154,12 @@ class Scan:
 
         if self.n_points == 0:
             raise GBError("cannot mesh a scan with no points")
+        grey = self.grey()
         if method == "grid":
-            m = gm.grid_mesh(self.xyz, self.valid, max_jump=max_jump, normals=self.normals_map)
+            m = gm.grid_mesh(self.xyz, self.valid, max_jump=max_jump, normals=self.normals_map, colors=grey)
         elif method == "poisson":
-            m = gm.poisson_mesh(self.points, self.normals, depth=depth, density_quantile=density_quantile)
+            m = gm.poisson_mesh(self.points, self.normals, depth=depth, density_quantile=density_quantile,
+                                colors=None if grey is None else grey[self.valid])
         else:
             raise GBError(f"mesh method must be 'grid' or 'poisson', got {method!r}")
         return gm.taubin_smooth(m, smooth) if smooth else m
@@ -129,11 +168,13 @@ class Scan:
         """``open3d.geometry.TriangleMesh`` of this scan (options as :meth:`mesh_arrays`)."""
         return self.mesh_arrays(method, **options).to_open3d()
 
-    def save_ply(self, path) -> Path:
-        """Write the cloud as an organised binary PLY (see :mod:`gbscan.mesh`)."""
+    def save_ply(self, path, *, colors: bool = True) -> Path:
+        """Write the cloud as an organised binary PLY (see :mod:`gbscan.mesh`), with the grey
+        texture as vertex colours when ``colors`` and the scan has one."""
         from .mesh import write_grid_cloud_ply
 
-        return write_grid_cloud_ply(path, self.xyz, self.normals_map, self.confidence, self.reason)
+        return write_grid_cloud_ply(path, self.xyz, self.normals_map, self.confidence, self.reason,
+                                    self.grey() if colors else None)
 
     def summary(self) -> str:
         """Human-readable lines: removals per step, points, coverage, timings."""
@@ -234,6 +275,8 @@ class Scanner:
         t_dec = (time.perf_counter() - t0) * 1e3
         s = self.reconstruct(sm.column, sm.confidence, decoded=sm.valid, clean=clean)
         s.stripe, s.stripemap = sm.stripe, sm
+        s.image, s.pattern = image_rgb, self.pattern
+        s.camera_gamma = float((self.decode_params or DecodeParams()).camera_gamma)
         s.timings_ms = {"decode": t_dec, **s.timings_ms}
         s.timings_ms["total"] = t_dec + s.timings_ms.get("total", 0.0)
         return s

@@ -161,6 +161,12 @@ def test_render_shows_the_mesh_where_it_projects(rig, sphere_scene):
     assert np.pi * radius ** 2 * 0.97 < (img > 0).sum() < np.pi * radius ** 2 * 1.01
     empty = Mesh(np.zeros((0, 3)), np.zeros((0, 3), int))
     assert not render_mesh(empty.vertices, empty.triangles, rig.camera.K, (64, 48)).any()
+    # a per-vertex albedo (a scan's grey texture) multiplies the shading
+    half = render_mesh(m.vertices, m.triangles, rig.camera.K, (640, 480), albedo=np.full(m.n_vertices, 0.5))
+    lit = img > 20
+    assert np.array_equal(half > 0, img > 0) and np.abs(half[lit] - 0.5 * img[lit].astype(float)).max() <= 1
+    with pytest.raises(GBError, match="albedo"):
+        render_mesh(m.vertices, m.triangles, rig.camera.K, (640, 480), albedo=np.ones(3))
 
 
 # -- compiled mesh building and writers: the same arrays and bytes as plain numpy ----------------
@@ -281,3 +287,52 @@ def test_scan_cloud_is_write_cloud_ply(tmp_path, sphere_scene):
     assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
     c = read_cloud_ply(tmp_path / "a.ply")
     assert c.organised and c.grid_size == (W, H) and len(c.points) == ok.sum()
+    # with colours (the scan's grey texture, or RGB): the same bytes again, and read back
+    grey = rng.integers(0, 256, (H, W), dtype=np.uint8)
+    rgb = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    for col in (grey, rgb):
+        write_grid_cloud_ply(tmp_path / "ca.ply", xyz, nrm, conf, reason, col)
+        write_cloud_ply(tmp_path / "cb.ply", xyz[ok], nrm[ok], confidence=conf[ok],
+                        pixel=np.argwhere(ok).astype(np.int32), grid_size=(W, H), colors=col[ok])
+        assert (tmp_path / "ca.ply").read_bytes() == (tmp_path / "cb.ply").read_bytes()
+        c = read_cloud_ply(tmp_path / "ca.ply")
+        want = np.repeat(col[ok][:, None], 3, 1) if col.ndim == 2 else col[ok]
+        np.testing.assert_array_equal(c.colors, want)
+        np.testing.assert_array_equal(c.color_grid()[ok], want)
+        assert b"property uchar red\nproperty uchar green\nproperty uchar blue\n" in (tmp_path / "ca.ply").read_bytes()
+    with pytest.raises(GBError, match="colors"):
+        write_grid_cloud_ply(tmp_path / "bad.ply", xyz, nrm, conf, reason, grey[:5])
+
+
+def test_mesh_colours_follow_the_vertices_to_every_file_and_through_every_step(tmp_path, sphere_scene):
+    import open3d as o3d
+
+    from gbscan.mesh import remove_unreferenced
+
+    p, _ = sphere_scene
+    H, W = p.shape[:2]
+    rgb = np.random.default_rng(3).integers(0, 256, (H, W, 3), dtype=np.uint8)
+    m = grid_mesh(p, colors=rgb)
+    np.testing.assert_array_equal(m.colors, rgb[m.pixel[:, 0], m.pixel[:, 1]])
+    np.testing.assert_array_equal(grid_mesh(p, colors=rgb[..., 0]).colors, np.repeat(m.colors[:, :1], 3, 1))
+    assert grid_mesh(p).colors is None
+    write_mesh(tmp_path / "m.ply", m)
+    back = o3d.io.read_triangle_mesh(str(tmp_path / "m.ply"))
+    np.testing.assert_array_equal(np.rint(np.asarray(back.vertex_colors) * 255).astype(np.uint8), m.colors)
+    np.testing.assert_allclose(np.asarray(back.vertices), m.vertices, atol=1e-3)   # float32 on disk
+    np.testing.assert_array_equal(Mesh.from_open3d(m.to_open3d()).colors, m.colors)
+    np.testing.assert_array_equal(taubin_smooth(m, 2).colors, m.colors)
+    sub = Mesh(m.vertices, m.triangles[:10], colors=m.colors)
+    used = np.unique(sub.triangles)
+    np.testing.assert_array_equal(remove_unreferenced(sub).colors, m.colors[used])
+    # Poisson: open3d interpolates the points' colours onto its vertices (uniform in, uniform out)
+    ok = np.isfinite(p[..., 2])
+    pm = poisson_mesh(p[ok], -p[ok] / np.linalg.norm(p[ok], axis=1, keepdims=True), depth=6,
+                      colors=np.full((ok.sum(), 3), 77, np.uint8))
+    assert pm.colors is not None and len(pm.colors) == pm.n_vertices and np.abs(pm.colors.astype(int) - 77).max() <= 1
+    with pytest.raises(GBError, match="mesh colors"):
+        Mesh(m.vertices, m.triangles, colors=m.colors[:-1])
+    with pytest.raises(GBError, match="uint8"):
+        Mesh(m.vertices, m.triangles, colors=m.colors.astype(np.float32))
+    with pytest.raises(GBError, match="grid_mesh: colors"):
+        grid_mesh(p, colors=rgb[:-1])

@@ -53,6 +53,31 @@ def test_reconstruct_from_true_columns_is_exact(scanner, scene):
     assert np.all((s.normals * s.points).sum(1) < 0)  # normals face the camera
 
 
+def test_scan_texture_is_the_kept_pixels_grey_and_goes_into_the_cloud(tmp_path, scanner, scene):
+    """Scanner.scan keeps its frame: a stripe-free texture on exactly the kept pixels, in the PLY and the
+    open3d cloud; a scan from external columns has none (and its PLY no colour properties)."""
+    from gbscan import sim
+    from gbscan.pattern import render_pattern
+
+    r = sim.render(sim.paper_rig(), sim.scenes.head(650.0), render_pattern(PatternSpec()), "typical", seed=0)
+    s = scanner.scan(r.image)
+    t = s.texture
+    assert t.shape == s.shape and np.array_equal(np.isfinite(t), s.valid) and s.texture is t   # computed once
+    g = s.grey()
+    assert g.dtype == np.uint8 and (g[~s.valid] == 0).all() and np.percentile(g[s.valid], 50) > 100
+    s.save_ply(tmp_path / "c.ply")
+    c = read_cloud_ply(tmp_path / "c.ply")
+    np.testing.assert_array_equal(c.colors[:, 0], g[s.valid])
+    assert np.allclose(np.asarray(s.to_open3d().colors)[:, 0], g[s.valid] / 255.0)
+    s.save_ply(tmp_path / "plain.ply", colors=False)
+    assert read_cloud_ply(tmp_path / "plain.ply").colors is None
+    p, col, _ = scene
+    ext = scanner.reconstruct(col, clean=False)
+    assert ext.texture is None and ext.grey() is None and ext.mesh_arrays("grid").colors is None
+    ext.save_ply(tmp_path / "ext.ply")
+    assert b"red" not in (tmp_path / "ext.ply").read_bytes()[:400]
+
+
 def test_reconstruct_cleans_and_reports_reasons(scanner, scene):
     p, col, _ = scene
     s = scanner.reconstruct(col, np.full(col.shape, 0.9, np.float32))
@@ -132,16 +157,28 @@ def test_scan_command_writes_every_output(tmp_path, monkeypatch, capsys, calib_f
     assert ok.sum() > 0.9 * np.isfinite(col).sum() and np.max(np.abs(xyz[ok] - p[ok])) < 1e-3
     cloud = read_cloud_ply(out / "cloud.ply")
     assert cloud.organised and len(cloud.points) == ok.sum()
+    # the grey texture as vertex colours (this fake frame is uniform grey: white but on the marker columns,
+    # whose light the texture divides out, and their box windows)
+    c = cloud.colors
+    assert c is not None and c.shape == (ok.sum(), 3) and (c == c[:, :1]).all() and np.median(c) > 200
     assert {f.name for f in (out / "prev").iterdir()} == {"depth.png", "coverage.png", "shaded_camera.png",
-                                                          "shaded_angle.png"}
+                                                          "shaded_angle.png", "texture.png", "textured_angle.png"}
     assert not [f for f in out.rglob(".*")]  # no temporary files left
-    # mesh the saved cloud: grid (organised) to OBJ, Poisson to STL
+    import open3d as o3d
+    assert o3d.io.read_triangle_mesh(str(out / "mesh.ply")).has_vertex_colors()
+    # mesh the saved cloud: grid (organised) to OBJ and PLY, Poisson to STL and PLY; colours carried to the PLYs
     rc, text, err = run_main(capsys, "mesh", out / "cloud.ply", "-o", out / "grid.obj", "--smooth", "2")
     assert rc == 0, err and "triangles" in text
     rc, text, err = run_main(capsys, "mesh", out / "cloud.ply", "-o", out / "p.stl", "--method", "poisson",
                              "--depth", "6")
     assert rc == 0, err
     assert (out / "grid.obj").stat().st_size > 0 and (out / "p.stl").stat().st_size > 84
+    for method in ("grid", "poisson"):
+        rc, text, err = run_main(capsys, "mesh", out / "cloud.ply", "-o", out / f"{method}.ply", "--method", method,
+                                 "--depth", "6")
+        assert rc == 0, err
+        m = o3d.io.read_triangle_mesh(str(out / f"{method}.ply"))
+        assert m.has_vertex_colors() and np.median(np.asarray(m.vertex_colors)) > 0.8, method
 
 
 def _one_line_error(rc, err, match):

@@ -4,7 +4,8 @@
 header comment 'gbscan_grid W H') that 'gbscan scan' writes; it triangulates neighbouring pixels
 and cuts the surface at depth jumps (--max-jump).  --method poisson works on any PLY cloud with
 normals (open3d's screened Poisson, trimmed where the data is thin: --trim).  The output format
-follows the name: .ply (binary, vertex normals), .obj, .stl (binary, triangle normals).
+follows the name: .ply (binary, vertex normals; the cloud's colours -- the scan's grey texture --
+as vertex colours), .obj, .stl (binary, triangle normals).
 """
 from __future__ import annotations
 
@@ -48,13 +49,14 @@ def run(args) -> int:
             raise GBError(f"point cloud {args.cloud} has no pixel grid (vertex row/col and a 'gbscan_grid' "
                           "comment, written by 'gbscan scan'); use --method poisson")
         xyz, valid = cloud.grid()
-        mesh = grid_mesh(xyz, valid, max_jump=args.max_jump, normals=cloud.normal_grid())
+        mesh = grid_mesh(xyz, valid, max_jump=args.max_jump, normals=cloud.normal_grid(), colors=cloud.color_grid())
     else:
         if cloud.normals is None:
             raise GBError(f"point cloud {args.cloud} has no normals (nx ny nz); Poisson meshing needs them")
         print(f"Poisson reconstruction of {len(cloud.points)} points at depth {args.depth} ...", file=sys.stderr,
               flush=True)
-        mesh = poisson_mesh(cloud.points, cloud.normals, depth=args.depth, density_quantile=args.trim)
+        mesh = poisson_mesh(cloud.points, cloud.normals, depth=args.depth, density_quantile=args.trim,
+                            colors=cloud.colors)
     if args.smooth:
         print(f"Taubin smoothing, {args.smooth} iterations ...", file=sys.stderr, flush=True)
         mesh = taubin_smooth(mesh, args.smooth)

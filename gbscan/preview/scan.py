@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..clean import REASONS
+from ..errors import GBError
 from ..io import atomic_path, write_png
 
 #: RGB colour of each cleaning reason in the coverage picture.
@@ -32,7 +33,7 @@ REASON_RGB = {
 # -- rasteriser -------------------------------------------------------------------------------
 def render_mesh(vertices: np.ndarray, triangles: np.ndarray, K: np.ndarray, size: tuple[int, int], *,
                 normals: np.ndarray | None = None, light_dir=(-0.35, -0.45, -1.0), ambient: float = 0.12,
-                background: int = 0) -> np.ndarray:
+                background: int = 0, albedo: np.ndarray | None = None) -> np.ndarray:
     """Gouraud-shaded grey image (H, W) uint8 of a mesh seen by a pinhole camera at the origin.
 
     vertices : (V, 3) mm in the viewing camera's frame (OpenCV: z forward).
@@ -40,6 +41,8 @@ def render_mesh(vertices: np.ndarray, triangles: np.ndarray, K: np.ndarray, size
     normals : (V, 3) vertex normals (default: from the triangles); shading uses |n . l| so the
         render does not depend on the winding.
     light_dir : direction *towards* the light (camera frame); default up-left of the camera.
+    albedo : optional (V,) vertex brightness in [0, 1] multiplying the shading (a scan's grey
+        texture: ``Mesh.colors[:, 0] / 255``).
     """
     from ..mesh import vertex_normals
 
@@ -53,6 +56,11 @@ def render_mesh(vertices: np.ndarray, triangles: np.ndarray, K: np.ndarray, size
     light = np.asarray(light_dir, dtype=np.float64)
     light = light / np.linalg.norm(light)
     shade = ambient + (1 - ambient) * np.abs(np.nan_to_num(n) @ light)
+    if albedo is not None:
+        albedo = np.asarray(albedo, dtype=np.float64).reshape(-1)
+        if albedo.shape != (len(v),):
+            raise GBError(f"render_mesh: albedo has {albedo.shape}, expected ({len(v)},)")
+        shade = shade * np.clip(albedo, 0.0, 1.0)
     z = v[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         u = K[0, 0] * v[:, 0] / z + K[0, 1] * v[:, 1] / z + K[0, 2]
@@ -194,7 +202,9 @@ def save_coverage_picture(path, reason: np.ndarray) -> Path:
 
 
 def write_scan_previews(scan, outdir, *, camera, mesh=None, yaw_deg: float = 35.0) -> list[Path]:
-    """Write ``depth.png``, ``coverage.png``, ``shaded_camera.png`` and ``shaded_angle.png``.
+    """Write ``depth.png``, ``coverage.png``, ``shaded_camera.png`` and ``shaded_angle.png``, and
+    when the scan has a texture ``texture.png`` (the grey texture of the kept points) and
+    ``textured_angle.png`` (the angled render with it).
 
     scan : :class:`gbscan.scan.Scan`; camera : the calibration's :class:`gbscan.camera.Camera`
     (its K and size frame the renders); mesh : a :class:`gbscan.mesh.Mesh` (default: the scan's
@@ -213,4 +223,11 @@ def write_scan_previews(scan, outdir, *, camera, mesh=None, yaw_deg: float = 35.
     v, n = orbit(mesh.vertices, mesh.normals(), yaw_deg, -15.0)
     img = render_mesh(v, mesh.triangles, camera.K, size, normals=n)
     paths.append(write_png(outdir / "shaded_angle.png", img))
+    grey = scan.grey()
+    if grey is not None:
+        paths.append(write_png(outdir / "texture.png", grey))
+        if mesh.colors is not None:
+            img = render_mesh(v, mesh.triangles, camera.K, size, normals=n, ambient=0.35,
+                              albedo=mesh.colors[:, 0] / 255.0)
+            paths.append(write_png(outdir / "textured_angle.png", img))
     return paths
