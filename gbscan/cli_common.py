@@ -48,6 +48,27 @@ def add_bayer_argument(p) -> None:
                         "OpenCV; default: full RGB per pixel, like the paper's 3-CCD camera")
 
 
+def add_jpeg_arguments(p) -> None:
+    """``--jpeg QUALITY`` and ``--jpeg-sampling`` of the simulators and the study scripts: frames
+    stored as JPEG (``gbscan.sim.Conditions.jpeg_quality`` / ``jpeg_sampling``); default lossless."""
+    from .sim.presets import JPEG_SAMPLINGS
+
+    p.add_argument("--jpeg", type=int, default=0, metavar="QUALITY",
+                   help="the camera stores JPEG of this quality (1-100; default 0: lossless frames)")
+    p.add_argument("--jpeg-sampling", default="4:2:0", choices=JPEG_SAMPLINGS,
+                   help="its chroma subsampling (default 4:2:0, most encoders' default)")
+
+
+def jpeg_fields(args) -> dict:
+    """The :class:`gbscan.sim.Conditions` fields of :func:`add_jpeg_arguments`' options."""
+    return {"jpeg_quality": int(args.jpeg), "jpeg_sampling": args.jpeg_sampling}
+
+
+def jpeg_label(args) -> str:
+    """", JPEG q85 4:2:0" for the options of :func:`add_jpeg_arguments`, "" without JPEG."""
+    return f", JPEG q{args.jpeg} {args.jpeg_sampling}" if args.jpeg else ""
+
+
 def run_cli(prog: str, description: str, package: str, stages: list[str], argv=None) -> int:
     parser = _Parser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     from gbscan import __version__

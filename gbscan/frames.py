@@ -23,7 +23,7 @@ from typing import Iterator
 import numpy as np
 
 from .errors import GBError
-from .io import IMAGE_SUFFIXES, read_image_rgb
+from .io import IMAGE_SUFFIXES, input_warning, read_image_rgb
 
 #: Video file suffixes opened with cv2.VideoCapture (anything FFmpeg reads; these are the usual ones).
 VIDEO_SUFFIXES = (".avi", ".mkv", ".mp4", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".ts")
@@ -95,6 +95,11 @@ class FrameSource:
         """
         raise NotImplementedError
 
+    def input_warning(self) -> str | None:
+        """One line of warning when the frames are stored lossily in a way that costs the colour
+        stripes (JPEG frames, a chroma-subsampled or lossy video codec), else None."""
+        return None
+
     def close(self) -> None:
         pass
 
@@ -144,6 +149,13 @@ class FolderFrames(FrameSource):
         for r in refs:
             yield r, read_frame(r, size)
 
+    def input_warning(self) -> str | None:
+        """:func:`gbscan.io.input_warning` of the first JPEG frame (the others are alike, as a rule)."""
+        first = next((p for p in self.files if p.suffix.lower() in (".jpg", ".jpeg")), None)
+        w = input_warning(first) if first is not None else None
+        n = sum(p.suffix.lower() in (".jpg", ".jpeg") for p in self.files)
+        return None if w is None else w + (f" ({n} JPEG frames)" if n > 1 else "")
+
 
 def read_frame(ref: FrameRef, size: tuple[int, int] | None = None) -> np.ndarray | GBError:
     """Read the image file of a folder frame; a GBError (returned, not raised) when it is bad."""
@@ -155,8 +167,23 @@ def read_frame(ref: FrameRef, size: tuple[int, int] | None = None) -> np.ndarray
         return e
 
 
+#: Codec pixel formats (FourCC, as FFmpeg in OpenCV reports them) that subsample chroma
+_CHROMA_SUBSAMPLED = {"I420": "4:2:0", "IYUV": "4:2:0", "YV12": "4:2:0", "NV12": "4:2:0", "NV21": "4:2:0",
+                      "J420": "4:2:0", "YUY2": "4:2:2", "YUYV": "4:2:2", "UYVY": "4:2:2", "Y42B": "4:2:2",
+                      "J422": "4:2:2", "Y41B": "4:1:1"}
+#: Lossless video codecs (FourCC, case-insensitive)
+_LOSSLESS_CODECS = {"ffv1", "hfyu", "ffvh", "png", "mpng", "raw"}
+
+
+def _fourcc(value) -> str:
+    """A FourCC property of cv2.VideoCapture as text ("" when absent), trailing NULs / blanks dropped."""
+    v = int(value or 0)
+    return v.to_bytes(4, "little").decode("latin-1").rstrip("\x00 ") if v > 0 else ""
+
+
 class VideoFrames(FrameSource):
-    """A video file read with cv2.VideoCapture (FFmpeg backend), sequentially."""
+    """A video file read with cv2.VideoCapture (FFmpeg backend), sequentially.  ``codec`` and
+    ``pixel_format`` are the stream's FourCCs as FFmpeg reports them ("" when unknown)."""
 
     kind = "video"
 
@@ -175,6 +202,8 @@ class VideoFrames(FrameSource):
                           "(corrupt, or a codec FFmpeg in OpenCV cannot decode); convert it, e.g. "
                           "'ffmpeg -i IN -c:v ffv1 OUT.mkv', or extract the frames to a folder")
         self.width, self.height = int(first.shape[1]), int(first.shape[0])
+        self.codec = _fourcc(cap.get(cv2.CAP_PROP_FOURCC))
+        self.pixel_format = _fourcc(cap.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT))
         n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         self.fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
         cap.release()
@@ -189,6 +218,19 @@ class VideoFrames(FrameSource):
 
     def __len__(self) -> int:
         return self.n_frames
+
+    def input_warning(self) -> str | None:
+        """A warning for a chroma-subsampled (4:2:0 / 4:2:2) or lossy video codec (most are)."""
+        sampling = _CHROMA_SUBSAMPLED.get(self.pixel_format)
+        if sampling:
+            return (f"warning: video {self.path} stores {sampling} chroma ({self.codec or 'codec ?'} / "
+                    f"{self.pixel_format}): the colour stripes lose half their resolution (simulated face: about "
+                    "half its pixels kept, twice the depth noise); record lossless RGB frames (an image sequence, or "
+                    "FFV1 / HuffYUV in RGB): converting this file does not bring the chroma back")
+        if self.codec and self.codec.lower() not in _LOSSLESS_CODECS:
+            return (f"warning: video {self.path} uses the lossy codec {self.codec}: its artefacts cost points and "
+                    "add depth noise; record lossless frames (FFV1, PNG) where the camera allows")
+        return None
 
     def ref(self, index: int) -> FrameRef:
         if not 0 <= index < self.n_frames:

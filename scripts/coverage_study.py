@@ -22,7 +22,8 @@ and the decoder's working volume.  ``--decode-param NAME=VALUE`` scans with a de
 run once with and once without); ``--yaw-deg`` turns the head / the real face (``fran_face``).
 
 ``--bayer RGGB`` renders through a colour filter mosaic and OpenCV's demosaicing (most colour
-cameras) instead of full RGB per pixel (the paper's 3-CCD camera).
+cameras) instead of full RGB per pixel (the paper's 3-CCD camera); ``--jpeg QUALITY
+[--jpeg-sampling 4:2:0]`` stores the frames as JPEG (webcams, most "photo" modes).
 
 ``--out DIR`` writes ``coverage_<scene>_s<seed>.png`` per frame: the lit non-edge pixels, kept in
 grey, lost ones coloured by reason (the decoder preview's colours), grazing ones (beyond 70
@@ -42,7 +43,7 @@ BINS_DEG = (0, 40, 60, 70, 75, 80, 90)
 
 
 def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", decode_params=None,
-          yaw_deg: float | None = None, depth_range=None) -> dict:
+          yaw_deg: float | None = None, depth_range=None, jpeg: dict | None = None) -> dict:
     from gbscan import sim
     from gbscan.calibfile import calibration_from_rig
     from gbscan.decode import REASONS
@@ -54,7 +55,7 @@ def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", 
     import dataclasses
 
     print(f"rendering {name} (seed {seed}, {preset}{', ' + bayer if bayer else ''}) ...", file=sys.stderr, flush=True)
-    cond = dataclasses.replace(sim.preset(preset), bayer=bayer)
+    cond = dataclasses.replace(sim.preset(preset), bayer=bayer, **(jpeg or {}))
     scene = getattr(sim.scenes, name)(**({} if yaw_deg is None else {"yaw_deg": yaw_deg}))
     r = sim.render(rig, scene, render_pattern(spec), cond, seed=seed)
     from gbscan.clean import CleanParams
@@ -156,9 +157,10 @@ def main(argv=None) -> int:
     ap.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
                     help="a gbscan.decode.DecodeParams field other than the default (repeatable), "
                          "e.g. extrapolate_fit=0")
-    from gbscan.cli_common import add_bayer_argument
+    from gbscan.cli_common import add_bayer_argument, add_jpeg_arguments, jpeg_fields, jpeg_label
 
     add_bayer_argument(ap)
+    add_jpeg_arguments(ap)
     args = ap.parse_args(argv)
     from gbscan import sim
     from gbscan.errors import GBError
@@ -193,11 +195,13 @@ def main(argv=None) -> int:
     if args.depth_range is not None:
         dec += f", depth range {args.depth_range[0]:g}-{args.depth_range[1]:g} mm"
     yaw = "" if args.yaw_deg is None else f", yaw {args.yaw_deg:g} deg"
-    print(f"# coverage study, paper rig, preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}{yaw}, "
+    print(f"# coverage study, paper rig, preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}"
+          f"{jpeg_label(args)}{yaw}, "
           f"{dec}, default cleaning")
     for name in names:
         for seed in seeds:
-            res = study(name, seed, args.preset, out, args.bayer, decode_params, args.yaw_deg, args.depth_range)
+            res = study(name, seed, args.preset, out, args.bayer, decode_params, args.yaw_deg, args.depth_range,
+                        jpeg_fields(args))
             if "picture" in res:
                 print(f"   wrote {res['picture']}")
     return 0

@@ -1,6 +1,6 @@
 """Which stripe width?  Decode simulated frames at stripe_px 4, 6, 8, 10, 12 and print a table.
 
-    python scripts/stripe_width_study.py [--scenes plane,sphere] [--preset typical] [--bayer RGGB]
+    python scripts/stripe_width_study.py [--scenes plane,sphere] [--preset typical] [--bayer RGGB] [--jpeg 90]
 
 For each width: coverage (reported / lit non-edge pixels), index correctness (reported non-edge
 pixels whose column is within half a stripe of the truth), column RMS (projector px) and the
@@ -21,9 +21,10 @@ def main(argv=None) -> int:
     ap.add_argument("--widths", default="4,6,8,10,12")
     ap.add_argument("--scenes", default="plane,sphere")
     ap.add_argument("--preset", default="typical")
-    from gbscan.cli_common import add_bayer_argument
+    from gbscan.cli_common import add_bayer_argument, add_jpeg_arguments, jpeg_fields, jpeg_label
 
     add_bayer_argument(ap)
+    add_jpeg_arguments(ap)
     args = ap.parse_args(argv)
     import dataclasses
 
@@ -33,8 +34,9 @@ def main(argv=None) -> int:
 
     rig = sim.paper_rig()
     rays = rig.camera.pixel_rays()
-    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer)
-    print(f"# stripe width study, preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}, "
+    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer, **jpeg_fields(args))
+    bayer = f", Bayer {args.bayer}" if args.bayer else ""
+    print(f"# stripe width study, preset {args.preset}{bayer}{jpeg_label(args)}, "
           "paper rig at 650 mm")
     print(f"{'scene':8s} {'stripe_px':>9s} {'cam px/stripe':>13s} {'coverage %':>10s} {'index ok %':>10s} "
           f"{'col RMS px':>10s} {'depth RMS mm':>12s} {'boundaries':>10s}")

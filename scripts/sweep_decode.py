@@ -17,6 +17,7 @@ pixel with the simulator's truth (``r.proj_xy``):
     python scripts/sweep_decode.py [--cache DIR] [--only SUBSTR] [--quick] [--decode NAME=VALUE]
     python scripts/sweep_decode.py --cache DIR --blur-grid 1,1.25,1.5,1.75,2,2.25,2.5,2.75,3
     python scripts/sweep_decode.py --cache DIR --depth-range 400 1200   # with a working volume
+    python scripts/sweep_decode.py --cache DIR --jpeg 90 --jpeg-sampling 4:4:4   # frames stored as JPEG
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
 wrong non-edge pixels under it (all wrong regions with ``--edges``), and a total.  Progress lines go to stderr.  Renders are cached in ``--cache`` (npz).
@@ -87,18 +88,22 @@ def scene_list(quick: bool = False) -> list[tuple[str, str, int, int, object]]:
     return out
 
 
-def load_or_render(name, preset, seed, ss, factory, cache: Path | None):
-    """(image, truth_column, depth_edge, lit) of one scene, from the cache when there."""
+def load_or_render(name, preset, seed, ss, factory, cache: Path | None, jpeg: dict | None = None):
+    """(image, truth_column, depth_edge, lit) of one scene, from the cache when there; ``jpeg``:
+    :class:`gbscan.sim.Conditions` JPEG fields (frames stored as JPEG), None: lossless."""
     from gbscan import sim
     from gbscan.io import save_npz
     from gbscan.pattern import PatternSpec, render_pattern
 
-    f = cache / f"{name}_{preset.replace('+', '_')}_ss{ss}.npz" if cache is not None else None
+    tag = ""
+    if jpeg and jpeg["jpeg_quality"]:
+        tag = f"_jpeg{jpeg['jpeg_quality']}_{jpeg['jpeg_sampling'].replace(':', '')}"
+    f = cache / f"{name}_{preset.replace('+', '_')}_ss{ss}{tag}.npz" if cache is not None else None
     if f is not None and f.exists():
         z = np.load(f)
         return z["image"], z["truth"], z["depth_edge"], z["lit"]
     name_, _, bayer = preset.partition("+")   # "typical+RGGB": the preset seen through a Bayer mosaic
-    cond = dataclasses.replace(sim.preset(name_), supersample=ss, bayer=bayer)
+    cond = dataclasses.replace(sim.preset(name_), supersample=ss, bayer=bayer, **(jpeg or {}))
     r = sim.render(sim.paper_rig(), factory(), render_pattern(PatternSpec()), cond, seed=seed)
     out = (r.image, r.proj_xy[..., 0].astype(np.float32), r.depth_edge, r.lit)
     if f is not None:
@@ -147,7 +152,7 @@ def working_volume(depth_range):
 
 
 def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = True,
-          stripe_range=None) -> dict:
+          stripe_range=None, jpeg: dict | None = None) -> dict:
     """Decode every scene with ``params`` (and the working volume ``stripe_range``); per-scene
     lines (and wrong regions) when ``show``.  Returns the totals: lit non-edge pixels, reported,
     wrong, wrong_edge, bad_scenes, scenes."""
@@ -162,7 +167,7 @@ def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = 
         f"{'>1px':>5s} {'ms':>6s}")
     for k, (name, preset, seed, ss, factory) in enumerate(scenes):
         t0 = time.perf_counter()
-        image, truth, depth_edge, lit = load_or_render(name, preset, seed, ss, factory, cache)
+        image, truth, depth_edge, lit = load_or_render(name, preset, seed, ss, factory, cache, jpeg)
         t1 = time.perf_counter()
         sm = decode(image, spec, params, keep_stages=True, stripe_range=stripe_range)
         t2 = time.perf_counter()
@@ -210,7 +215,11 @@ def main(argv=None) -> int:
     ap.add_argument("--blur-grid", metavar="S1,S2,...",
                     help="run the whole sweep once per fixed blur sigma (px) and print one total line each "
                          "(the automatic blur picks 1-3 px by the frame's SNR: the index must hold at all)")
+    from gbscan.cli_common import add_jpeg_arguments, jpeg_fields
+
+    add_jpeg_arguments(ap)
     args = ap.parse_args(argv)
+    jpeg = jpeg_fields(args)
     sigmas = []
     if args.blur_grid:
         try:
@@ -256,11 +265,12 @@ def main(argv=None) -> int:
     if sigmas:
         print(f"{'blur_px':>7s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'bad scenes':>10s}")
         for sg in sigmas:
-            tot = sweep(replace(params, blur_sigma_along_px=sg), scenes, cache, show=False, stripe_range=volume)
+            tot = sweep(replace(params, blur_sigma_along_px=sg), scenes, cache, show=False, stripe_range=volume,
+                        jpeg=jpeg)
             print(f"{sg:7.2f} {100.0 * tot['reported'] / max(tot['lit'], 1):9.2f} {tot['wrong']:6d} "
                   f"{tot['wrong_edge']:10d} {tot['bad_scenes']:>7d}/{tot['scenes']}", flush=True)
         return 0
-    tot = sweep(params, scenes, cache, args.edges, stripe_range=volume)
+    tot = sweep(params, scenes, cache, args.edges, stripe_range=volume, jpeg=jpeg)
     rms = (tot["sq_err"] / tot["n_err"]) ** 0.5 if tot["n_err"] else float("nan")
     print(f"{'TOTAL':26s} {'':12s} {100.0 * tot['reported'] / max(tot['lit'], 1):9.2f} {tot['wrong']:6d} "
           f"{tot['wrong_edge']:10d} {rms:7.3f} {tot['over_1px']:5d}   scenes with wrong pixels: "

@@ -118,3 +118,45 @@ def test_session_format(tmp_path):
     os.remove(tmp_path / "session.yaml")
     with pytest.raises(GBError, match="session.yaml is missing"):
         load_session(tmp_path)
+
+
+@pytest.mark.parametrize("quality", [50, 75, 90, 95, 100])
+def test_jpeg_info_reads_sampling_and_quality_from_the_header(tmp_path, quality):
+    import cv2
+
+    from gbscan.io import jpeg_info
+
+    img = np.random.default_rng(0).integers(0, 256, (40, 56, 3), dtype=np.uint8)
+    for sampling, flag in (("4:4:4", cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444),
+                           ("4:2:2", cv2.IMWRITE_JPEG_SAMPLING_FACTOR_422),
+                           ("4:2:0", cv2.IMWRITE_JPEG_SAMPLING_FACTOR_420)):
+        params = [cv2.IMWRITE_JPEG_QUALITY, quality, cv2.IMWRITE_JPEG_SAMPLING_FACTOR, flag]
+        cv2.imwrite(str(tmp_path / "f.jpg"), img, params)
+        assert jpeg_info(tmp_path / "f.jpg") == {"sampling": sampling, "quality": quality}
+    cv2.imwrite(str(tmp_path / "g.jpg"), img[..., 0], [cv2.IMWRITE_JPEG_QUALITY, quality])
+    assert jpeg_info(tmp_path / "g.jpg") == {"sampling": "grey", "quality": quality}
+
+
+def test_input_warning_for_frames_that_lose_the_colour_stripes(tmp_path):
+    import cv2
+
+    from gbscan.io import input_warning, jpeg_info
+
+    img = np.random.default_rng(0).integers(0, 256, (40, 56, 3), dtype=np.uint8)
+    cases = {"420_95.jpg": (95, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_420),
+             "444_80.jpg": (80, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444),
+             "444_95.jpg": (95, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444)}
+    for name, (q, flag) in cases.items():
+        cv2.imwrite(str(tmp_path / name), img, [cv2.IMWRITE_JPEG_QUALITY, q, cv2.IMWRITE_JPEG_SAMPLING_FACTOR, flag])
+    w = input_warning(tmp_path / "420_95.jpg")
+    assert w.startswith("warning:") and "4:2:0" in w and "420_95.jpg" in w and "PNG" in w
+    w = input_warning(tmp_path / "444_80.jpg")
+    assert "quality ~80" in w and "4:2:0" not in w
+    assert input_warning(tmp_path / "444_95.jpg") is None
+    write_png(tmp_path / "f.png", img)
+    assert input_warning(tmp_path / "f.png") is None and jpeg_info(tmp_path / "f.png") is None
+    # not JPEG after all, cut short, or missing: no warning and no error (reading the image reports those)
+    (tmp_path / "cut.jpg").write_bytes((tmp_path / "420_95.jpg").read_bytes()[:30])
+    (tmp_path / "junk.jpg").write_bytes(b"\xff\xd8\xff\xdb\x00")
+    for name in ("cut.jpg", "junk.jpg", "missing.jpg"):
+        assert jpeg_info(tmp_path / name) is None and input_warning(tmp_path / name) is None

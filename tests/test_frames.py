@@ -62,6 +62,25 @@ def test_video_round_trip_exact(tmp_path, fourcc, ext):
         np.testing.assert_array_equal(img, imgs[r.index])  # lossless, RGB order kept
 
 
+def test_input_warning_for_jpeg_frames_and_chroma_subsampled_video(tmp_path):
+    import cv2
+
+    imgs = _frames(3, seed=2)
+    for i, img in enumerate(imgs):
+        cv2.imwrite(str(tmp_path / f"f{i}.jpg"), img[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])
+    w = FolderFrames(tmp_path).input_warning()
+    assert "4:2:0" in w and "f0.jpg" in w and "(3 JPEG frames)" in w
+    png = tmp_path / "png"
+    png.mkdir()
+    write_png(png / "a.png", imgs[0])
+    assert FolderFrames(png).input_warning() is None
+    lossless = open_frames(write_video(tmp_path / "v.mkv", imgs))
+    assert lossless.input_warning() is None
+    mjpg = open_frames(write_video(tmp_path / "v.avi", imgs, fourcc="MJPG"))
+    assert mjpg.codec == "MJPG" and mjpg.pixel_format == "I420"
+    assert "4:2:0" in mjpg.input_warning() and "MJPG" in mjpg.input_warning()
+
+
 def test_video_wrong_size_and_past_end(tmp_path):
     path = write_video(tmp_path / "v.avi", _frames(3))
     src = open_frames(path)

@@ -181,6 +181,20 @@ def test_scan_command_writes_every_output(tmp_path, monkeypatch, capsys, calib_f
         assert m.has_vertex_colors() and np.median(np.asarray(m.vertex_colors)) > 0.8, method
 
 
+def test_scan_command_warns_about_a_chroma_subsampled_jpeg(tmp_path, monkeypatch, capsys, calib_file, scene):
+    import cv2
+
+    _, col, _ = scene
+    fake_decoder(monkeypatch, col)
+    cv2.imwrite(str(tmp_path / "frame.jpg"), np.full((480, 640, 3), 90, np.uint8))   # OpenCV's default: 4:2:0
+    rc, text, err = run_main(capsys, "scan", tmp_path / "frame.jpg", "--calib", calib_file, "-o", tmp_path / "c.ply")
+    assert rc == 0 and "points:" in text
+    assert err.startswith("warning:") and "4:2:0 chroma subsampling" in err and "PNG" in err
+    write_png(tmp_path / "frame.png", np.full((480, 640, 3), 90, np.uint8))
+    rc, text, err = run_main(capsys, "scan", tmp_path / "frame.png", "--calib", calib_file, "-o", tmp_path / "c.ply")
+    assert rc == 0 and "warning" not in err
+
+
 def _one_line_error(rc, err, match):
     assert rc == 1, err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err

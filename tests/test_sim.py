@@ -300,6 +300,30 @@ def test_bayer_mosaic_keeps_flat_colours(pattern):
         dataclasses.replace(cond, bayer="RGBW")
 
 
+def test_jpeg_camera_is_the_lossless_frame_through_opencvs_encoder():
+    """Conditions.jpeg_quality: the frame the same render gives losslessly, JPEG-encoded and decoded."""
+    import cv2
+
+    from gbscan.sim.render import camera_image
+
+    cam = sim.paper_rig().camera.scaled(0.25)
+    rng = np.random.default_rng(4)
+    lin = rng.uniform(0.05, 0.9, (cam.height, cam.width, 3)).astype(np.float32)
+    base = sim.preset("typical")
+    lossless = camera_image(lin, cam, base, np.random.default_rng(1))
+    for q, sampling, flag in ((90, "4:2:0", cv2.IMWRITE_JPEG_SAMPLING_FACTOR_420),
+                              (70, "4:4:4", cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444)):
+        got = camera_image(lin, cam, dataclasses.replace(base, jpeg_quality=q, jpeg_sampling=sampling),
+                           np.random.default_rng(1))
+        ok, buf = cv2.imencode(".jpg", lossless[..., ::-1].copy(),
+                               [cv2.IMWRITE_JPEG_QUALITY, q, cv2.IMWRITE_JPEG_SAMPLING_FACTOR, flag])
+        np.testing.assert_array_equal(got, cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1])
+        assert not np.array_equal(got, lossless)
+    for bad in ({"jpeg_quality": 101}, {"jpeg_quality": -1}, {"jpeg_quality": 90.5}, {"jpeg_sampling": "4:1:1"}):
+        with pytest.raises(GBError, match="jpeg"):
+            dataclasses.replace(base, **bad)
+
+
 def test_albedo_gain_scales_the_signal(small_rig):
     base = dataclasses.replace(sim.preset("clean"), supersample=1, full_well_e=0.0, read_noise_dn=0.0)
     dark = dataclasses.replace(base, albedo_gain_rgb=(0.8, 0.5, 0.25))

@@ -101,6 +101,9 @@ def run(args) -> int:
         if source.ignored:
             shown = ", ".join(source.ignored[:5]) + (" ..." if len(source.ignored) > 5 else "")
             print(f"ignored {len(source.ignored)} non-image file(s): {shown}", file=sys.stderr)
+        warning = source.input_warning()
+        if warning:
+            print(warning, file=sys.stderr, flush=True)
         s = run_batch(source, proc, args.output, start=args.start, stop=args.stop, every=args.every,
                       workers=args.workers, scheduler=args.scheduler, ply=args.ply, mesh=args.mesh,
                       temporal=args.temporal, restart=args.restart, progress=not args.quiet,

@@ -10,6 +10,8 @@ The pattern must be the one projected: take it from the calibration file (--cali
 """
 from __future__ import annotations
 
+import sys
+
 HELP = "decode one frame's stripes -> projector columns (stripes.npz, stage previews)"
 
 
@@ -189,7 +191,7 @@ def run(args) -> int:
 
     from ..decode import decode
     from ..errors import GBError
-    from ..io import read_image_rgb, save_npz
+    from ..io import input_warning, read_image_rgb, save_npz
     from ..pattern import PatternSpec
 
     if not args.output and not args.preview:
@@ -232,6 +234,9 @@ def run(args) -> int:
         if not d.parent.is_dir():
             raise GBError(f"--preview {d}: folder {d.parent} does not exist (create it first)")
     image = read_image_rgb(args.image, size=size)
+    warning = input_warning(args.image)
+    if warning:
+        print(warning, file=sys.stderr, flush=True)
     sm = decode(image, pattern, params, keep_stages=bool(args.preview), stripe_range=stripe_range)
     if args.output:
         arrays = sm.arrays()

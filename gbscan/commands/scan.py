@@ -137,12 +137,15 @@ def run(args) -> int:
     import numpy as np
 
     from ..calibfile import load_calibration
-    from ..io import read_image_rgb, save_npy
+    from ..io import input_warning, read_image_rgb, save_npy
     from ..scan import Scanner
 
     calib = load_calibration(args.calib)
     cam = calib.camera
     image = read_image_rgb(args.image, size=(cam.width, cam.height), what="image")
+    warning = input_warning(args.image)
+    if warning:
+        print(warning, file=sys.stderr, flush=True)
     decode_params = decode_params_from_args(args)
     t_load = time.perf_counter()
     scanner = Scanner(calib, decode_params=decode_params, clean_params=clean_params)

@@ -13,7 +13,7 @@ SCENES = ["plane", "sphere", "head", "step", "multi", "board", "face"]
 
 
 def add_arguments(p):
-    from gbscan.cli_common import add_bayer_argument
+    from gbscan.cli_common import add_bayer_argument, add_jpeg_arguments
 
     p.add_argument("scene", choices=SCENES, metavar="SCENE", help="one of " + ", ".join(SCENES))
     p.add_argument("-o", "--output", required=True, help="output PNG (camera image, RGB)")
@@ -21,6 +21,7 @@ def add_arguments(p):
                    help="imaging conditions (default typical)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     add_bayer_argument(p)
+    add_jpeg_arguments(p)
     p.add_argument("--distance-mm", type=float, default=650.0, help="scene distance in mm (default 650)")
     p.add_argument("--truth", help="also write the ground truth to this .npz")
     p.add_argument("--frame", help="projector frame PNG (default: the single-shot pattern)")
@@ -58,6 +59,7 @@ def run(args) -> int:
 
     from gbscan import sim
     from gbscan.errors import GBError
+    from gbscan.cli_common import jpeg_fields, jpeg_label
     from gbscan.io import read_image_rgb, write_png
     from gbscan.pattern import PatternSpec, render_pattern
 
@@ -73,10 +75,10 @@ def run(args) -> int:
         frame = render_pattern(PatternSpec(pw, ph, args.stripe_px, not args.no_markers))
     t0 = time.time()
     scene = make_scene(args.scene, args.distance_mm)
-    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer)
+    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer, **jpeg_fields(args))
     r = sim.render(rig, scene, frame, cond, seed=args.seed)
     out = write_png(args.output, r.image)
-    camera = f", Bayer {args.bayer}" if args.bayer else ""
+    camera = (f", Bayer {args.bayer}" if args.bayer else "") + jpeg_label(args)
     msg = f"wrote {out} ({args.scene}, preset {args.preset}{camera}, seed {args.seed}, {time.time() - t0:.1f} s)"
     if args.truth:
         r.save_truth(args.truth)

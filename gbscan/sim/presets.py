@@ -14,6 +14,7 @@ Signal chain (see :mod:`gbscan.sim.render`)::
     --> [optional Bayer mosaic] --> shot noise (Gaussian, variance = signal / full_well_e)
     + read noise (read_noise_dn / 255) --> encode ~255 * lin**(1/gamma) (small linear toe at
     black, see gbscan.sim.render.encode) --> round, clip to 0..255 --> [demosaic]
+    --> [optional JPEG round trip: OpenCV's encoder at jpeg_quality with jpeg_sampling]
 
 ``crosstalk[c, p]`` is how much camera channel ``c`` (R, G, B) sees of projector channel ``p``.
 ``ambient_rgb`` is ambient irradiance relative to a white projector pixel at ``ref_distance_mm``
@@ -36,6 +37,8 @@ from ..errors import GBError
 
 #: Colour filter mosaics ``Conditions.bayer`` takes, named by the sensor's top-left 2x2, row by row
 BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+#: JPEG chroma subsamplings ``Conditions.jpeg_sampling`` takes
+JPEG_SAMPLINGS = ("4:4:4", "4:2:2", "4:2:0")
 
 
 def _m(rows):
@@ -67,6 +70,8 @@ class Conditions:
     bayer: str = ""                      # "" = full RGB per pixel; "RGGB" etc. = colour filter mosaic
                                          # sampled per photosite, noise per photosite, then
                                          # demosaiced (OpenCV edge-aware) like a real colour camera
+    jpeg_quality: int = 0                # 0 = lossless frames; 1..100 = stored as JPEG of this quality
+    jpeg_sampling: str = "4:2:0"         # its chroma subsampling (4:2:0: most encoders' default)
 
     def __post_init__(self):
         if int(self.supersample) < 1:
@@ -83,6 +88,10 @@ class Conditions:
                 raise GBError(f"condition {name} must be >= 0, got {getattr(self, name)}")
         if self.bayer not in ("",) + BAYER_PATTERNS:
             raise GBError(f"bayer must be '' or one of RGGB, BGGR, GRBG, GBRG, got {self.bayer!r}")
+        if not (isinstance(self.jpeg_quality, (int, np.integer)) and 0 <= int(self.jpeg_quality) <= 100):
+            raise GBError(f"jpeg_quality must be an integer 0 (lossless) .. 100, got {self.jpeg_quality!r}")
+        if self.jpeg_sampling not in JPEG_SAMPLINGS:
+            raise GBError(f"jpeg_sampling must be one of {', '.join(JPEG_SAMPLINGS)}, got {self.jpeg_sampling!r}")
         object.__setattr__(self, "crosstalk", _m(c))
         object.__setattr__(self, "albedo_gain_rgb", tuple(float(v) for v in np.broadcast_to(self.albedo_gain_rgb, 3)))
         object.__setattr__(self, "ambient_rgb", tuple(float(v) for v in np.broadcast_to(self.ambient_rgb, 3)))

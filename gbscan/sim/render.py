@@ -444,13 +444,32 @@ def camera_image(linear: np.ndarray, cam: Camera, cond: Conditions, rng: np.rand
     if cond.motion_px > 0:
         img = cv2.filter2D(img, -1, _motion_kernel(cond.motion_px, cond.motion_deg), borderType=cv2.BORDER_REFLECT)
     if cond.bayer:
-        return _bayer_image(img, cond, rng)
+        return _jpeg_round_trip(_bayer_image(img, cond, rng), cond)
     noisy = img
     if cond.full_well_e > 0:
         noisy = noisy + np.sqrt(np.clip(img, 0, None) / cond.full_well_e) * rng.standard_normal(img.shape, np.float32)
     if cond.read_noise_dn > 0:
         noisy = noisy + np.float32(cond.read_noise_dn / 255.0) * rng.standard_normal(img.shape, np.float32)
-    return np.clip(np.rint(encode(noisy, cond.gamma)), 0, 255).astype(np.uint8)
+    return _jpeg_round_trip(np.clip(np.rint(encode(noisy, cond.gamma)), 0, 255).astype(np.uint8), cond)
+
+
+_JPEG_SAMPLING_FLAGS = {"4:4:4": "IMWRITE_JPEG_SAMPLING_FACTOR_444", "4:2:2": "IMWRITE_JPEG_SAMPLING_FACTOR_422",
+                        "4:2:0": "IMWRITE_JPEG_SAMPLING_FACTOR_420"}
+
+
+def _jpeg_round_trip(rgb: np.ndarray, cond: Conditions) -> np.ndarray:
+    """The 8-bit RGB frame as a camera storing JPEG delivers it: OpenCV's (libjpeg) encoder at
+    ``cond.jpeg_quality`` with ``cond.jpeg_sampling``, decoded again; unchanged when the quality is 0."""
+    if not cond.jpeg_quality:
+        return rgb
+    import cv2
+
+    flag = getattr(cv2, _JPEG_SAMPLING_FLAGS[cond.jpeg_sampling])
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]),
+                           [cv2.IMWRITE_JPEG_QUALITY, int(cond.jpeg_quality), cv2.IMWRITE_JPEG_SAMPLING_FACTOR, flag])
+    if not ok:
+        raise GBError("the simulated camera could not encode its frame as JPEG")
+    return np.ascontiguousarray(cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1])
 
 
 _BAYER_CODES = {"RGGB": "COLOR_BayerRGGB2RGB_EA", "BGGR": "COLOR_BayerBGGR2RGB_EA",
