@@ -391,20 +391,13 @@ def write_grid_cloud_ply(path, xyz: np.ndarray, normals: np.ndarray, confidence:
                   np.ascontiguousarray(confidence, dtype=np.float32), reason, True, True, True, arr, arr.view(np.int32))
     fields = [(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz", "confidence")] + [("row", "<i4"), ("col", "<i4")]
     comments = ["gbscan point cloud, camera frame (x right, y down, z forward), mm", f"gbscan_grid {W} {H}"]
-    rec = arr.view(np.dtype(fields)).reshape(-1)
     if colors is not None:
         colors = np.asarray(colors)
         if colors.dtype != np.uint8 or colors.shape not in ((H, W), (H, W, 3)):
             raise GBError(f"write_grid_cloud_ply: colors are {colors.shape} {colors.dtype}, "
                           f"expected uint8 {(H, W, 3)} or {(H, W)}")
-        ok = reason == 0
-        c = colors[ok]
-        crec = np.empty(n, np.dtype(fields + [("red", "u1"), ("green", "u1"), ("blue", "u1")]))
-        b = crec.view(np.uint8).reshape(n, 39)
-        b[:, :36] = arr.view(np.uint8).reshape(n, 36)
-        b[:, 36:] = c[:, None] if c.ndim == 1 else c
-        rec = crec
-    return _write_ply(path, rec, None, comments)
+        colors = _colors_u8(colors[reason == 0], n, "write_grid_cloud_ply colors")
+    return _write_ply(path, _vertex_records(arr, fields, colors), None, comments)
 
 
 def read_cloud_ply(path) -> Cloud:
@@ -503,6 +496,20 @@ def _parse_ply_header(path: Path):
                 return header, elements, fh.tell(), fmt
 
 
+def _vertex_records(arr: np.ndarray, fields: list, colors: np.ndarray | None) -> np.ndarray:
+    """PLY vertex records: the 4-byte columns of ``arr`` (N, K) as ``fields``, followed by
+    ``red green blue`` (uchar) from ``colors`` (N, 3) uint8 when given (packed: 4K + 3 bytes)."""
+    n, k = arr.shape
+    rec = arr.view(np.dtype(fields)).reshape(-1)
+    if colors is None:
+        return rec
+    out = np.empty(n, np.dtype(fields + [("red", "u1"), ("green", "u1"), ("blue", "u1")]))
+    b = out.view(np.uint8).reshape(n, 4 * k + 3)
+    b[:, :4 * k] = arr.view(np.uint8).reshape(n, 4 * k)
+    b[:, 4 * k:] = colors
+    return out
+
+
 def _write_ply(path, vertex_rec: np.ndarray, faces: np.ndarray | None, comments: list[str]) -> Path:
     inv = {"<f4": "float", "<i4": "int", "<u1": "uchar", "|u1": "uchar", "<f8": "double"}
     lines = ["ply", "format binary_little_endian 1.0"]
@@ -548,14 +555,8 @@ def write_mesh(path, mesh: Mesh) -> Path:
         arr[:, :3] = v
         arr[:, 3:] = n
         fields = [(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz")]
-        rec = arr.view(np.dtype(fields)).reshape(-1)
-        if mesh.colors is not None:  # + red green blue (uchar): 27-byte records
-            crec = np.empty(len(v), np.dtype(fields + [("red", "u1"), ("green", "u1"), ("blue", "u1")]))
-            b = crec.view(np.uint8).reshape(len(v), 27)
-            b[:, :24] = arr.view(np.uint8).reshape(len(v), 24)
-            b[:, 24:] = mesh.colors
-            rec = crec
-        return _write_ply(path, rec, mesh.triangles, ["gbscan mesh, camera frame, mm"])
+        return _write_ply(path, _vertex_records(arr, fields, mesh.colors), mesh.triangles,
+                          ["gbscan mesh, camera frame, mm"])
     if suffix == ".obj":
         parts = [b"# gbscan mesh, camera frame (x right, y down, z forward), mm\n",
                  _obj_rows(b"v", v, 4), _obj_rows(b"vn", n, 5)]

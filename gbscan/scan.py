@@ -63,6 +63,7 @@ class Scan:
     pattern: PatternSpec | None = None
     camera_gamma: float = 2.2
     _texture: np.ndarray | None = field(default=None, init=False, repr=False)
+    _grey: np.ndarray | None = field(default=None, init=False, repr=False)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -125,11 +126,13 @@ class Scan:
 
     def grey(self) -> np.ndarray | None:
         """(H, W) uint8 display grey of :attr:`texture` (:func:`gbscan.texture.to_grey`: the 99.5th
-        percentile of the kept points is white), 0 where no point; None without a texture."""
+        percentile of the kept points is white), 0 where no point; None without a texture.
+        Computed once (the cloud, the mesh and the previews all use it)."""
         from .texture import to_grey
 
-        t = self.texture
-        return None if t is None else to_grey(t)
+        if self._grey is None and self.texture is not None:
+            self._grey = to_grey(self.texture)
+        return self._grey
 
     def to_open3d(self):
         """``open3d.geometry.PointCloud`` with normals (and grey colours when there is a texture)."""
