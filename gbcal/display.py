@@ -163,6 +163,8 @@ class NullDisplay:
         self.n_projector = 0
         self.last_live = None
         self.views = []
+        self.images = 0
+        self.last_image = None
 
     def show_projector(self, frame_rgb):
         self.projector_frame = frame_rgb
@@ -171,6 +173,10 @@ class NullDisplay:
     def show_live(self, image_rgb, corners, view):
         self.last_live = (image_rgb, corners, view)
         self.views.append(view)
+
+    def show_image(self, picture_rgb):
+        self.last_image = picture_rgb
+        self.images += 1
 
     def wait_ms(self, ms):
         pass
@@ -202,7 +208,7 @@ class TkDisplay:
     name = "tk"
 
     def __init__(self, projector_size, screen_xy=(1920, 0), *, live_max_px=LIVE_MAX_PX, screen_name=None,
-                 pattern_size=(9, 7)):
+                 pattern_size=(9, 7), title=WINDOW_LIVE):
         try:
             import tkinter as tk
         except ImportError as e:
@@ -220,7 +226,7 @@ class TkDisplay:
         self._keys = deque()
         self._images = {}
         root = self.root
-        root.title(WINDOW_LIVE)
+        root.title(title)
         root.geometry("+40+40")  # top-left of the primary screen, away from the projector
         root.configure(bg="black")
         self._live = tk.Label(root, bd=0, highlightthickness=0, bg="black")
@@ -259,8 +265,11 @@ class TkDisplay:
         self.root.update()
 
     def show_live(self, image_rgb, corners, view):
-        pic = compose_feedback(image_rgb, corners, self.pattern_size, view, self.live_max_px)
-        self._live.configure(image=self._photo("live", pic))
+        self.show_image(compose_feedback(image_rgb, corners, self.pattern_size, view, self.live_max_px))
+
+    def show_image(self, picture_rgb):
+        """Any (H, W, 3) uint8 RGB picture in the live window."""
+        self._live.configure(image=self._photo("live", np.ascontiguousarray(picture_rgb)))
         self.root.update()
 
     def wait_ms(self, ms):
@@ -328,7 +337,8 @@ class OpenCVDisplay:
 
     name = "opencv"
 
-    def __init__(self, projector_size, screen_xy=(1920, 0), *, live_max_px=LIVE_MAX_PX, pattern_size=(9, 7)):
+    def __init__(self, projector_size, screen_xy=(1920, 0), *, live_max_px=LIVE_MAX_PX, pattern_size=(9, 7),
+                 title=WINDOW_LIVE):
         import cv2
 
         ok, why = opencv_gui()
@@ -340,9 +350,10 @@ class OpenCVDisplay:
         self.live_max_px = live_max_px
         self.pattern_size = tuple(pattern_size)
         self._keys = deque()
+        self.title = title
         try:
             cv2.namedWindow(WINDOW_PROJ, cv2.WINDOW_NORMAL)
-            cv2.namedWindow(WINDOW_LIVE, cv2.WINDOW_AUTOSIZE)
+            cv2.namedWindow(title, cv2.WINDOW_AUTOSIZE)
         except cv2.error as e:
             raise GBError(f"OpenCV cannot open a window: {str(e).strip().splitlines()[-1]}") from None
         cv2.moveWindow(WINDOW_PROJ, *self.xy)
@@ -359,8 +370,11 @@ class OpenCVDisplay:
         self._pump(1)
 
     def show_live(self, image_rgb, corners, view):
-        pic = compose_feedback(image_rgb, corners, self.pattern_size, view, self.live_max_px)
-        self.cv2.imshow(WINDOW_LIVE, np.ascontiguousarray(pic[:, :, ::-1]))
+        self.show_image(compose_feedback(image_rgb, corners, self.pattern_size, view, self.live_max_px))
+
+    def show_image(self, picture_rgb):
+        """Any (H, W, 3) uint8 RGB picture in the live window."""
+        self.cv2.imshow(self.title, np.ascontiguousarray(np.asarray(picture_rgb)[:, :, ::-1]))
         self._pump(1)
 
     def wait_ms(self, ms):
@@ -389,10 +403,11 @@ class OpenCVDisplay:
 
 
 def choose_display(kind: str, projector_size, screen_xy=(1920, 0), *, pattern_size=(9, 7),
-                   live_max_px=LIVE_MAX_PX, log=None):
+                   live_max_px=LIVE_MAX_PX, log=None, title=WINDOW_LIVE):
     """The display backend ``kind``: ``"auto"`` (Tk, else OpenCV highgui), ``"tk"``, ``"opencv"``
-    or ``"none"``.  GBError naming what is missing and what to do when no window can be opened."""
-    kw = dict(pattern_size=pattern_size, live_max_px=live_max_px)
+    or ``"none"``; ``title`` names the live window.  GBError naming what is missing and what to
+    do when no window can be opened."""
+    kw = dict(pattern_size=pattern_size, live_max_px=live_max_px, title=title)
     if kind == "none":
         return NullDisplay()
     if kind == "tk":
@@ -415,6 +430,33 @@ def choose_display(kind: str, projector_size, screen_xy=(1920, 0), *, pattern_si
              and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY") else ""))
     raise GBError(f"no window can be opened for the projector and the live view: {tk_why}; and {cv_why}. "
                   f"{hint[0].upper() + hint[1:]}, or try the flow without windows with --simulate")
+
+
+# -- scripts ------------------------------------------------------------------------------------
+class Devices(list):
+    """The windows and cameras a script opened (:func:`run_script` closes them, newest first)."""
+
+    def open(self, device):
+        """Keep ``device`` (anything with ``close()``) for closing; returns it."""
+        self.append(device)
+        return device
+
+    def close_all(self) -> None:
+        while self:
+            self.pop().close()
+
+
+def run_script(prog: str, body) -> int:
+    """A rig script's main: ``body(devices)`` returns the exit status, errors end in one line as
+    the commands' do (:func:`gbscan.cli_common.guarded`), and every device opened through
+    ``devices`` (:class:`Devices`) is closed however it ends."""
+    from gbscan.cli_common import guarded
+
+    devices = Devices()
+    try:
+        return guarded(prog, lambda: body(devices))
+    finally:
+        devices.close_all()
 
 
 # -- camera ------------------------------------------------------------------------------------

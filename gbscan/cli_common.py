@@ -92,21 +92,27 @@ def run_cli(prog: str, description: str, package: str, stages: list[str], argv=N
     if not args.command:
         parser.print_help()
         return 2
+    return guarded(f"{prog} {args.command}", lambda: int(modules[args.command].run(args) or 0),
+                   "; outputs not finished were not written")
+
+
+def guarded(label: str, fn, interrupted_note: str = "") -> int:
+    """Run ``fn()`` (returning the exit status) the way every command and rig script ends: a
+    GBError, OSError or MemoryError in one line ``label: error: ...`` (status 1), Ctrl-C in
+    ``label: interrupted`` + ``interrupted_note`` (130), anything else in one line saying it is a
+    bug (3; ``GB_DEBUG=1`` shows the traceback instead)."""
     try:
-        return int(modules[args.command].run(args) or 0)
-    except GBError as e:
-        print(f"{prog} {args.command}: error: {e}", file=sys.stderr)
+        return fn()
+    except (GBError, OSError, MemoryError) as e:
+        print(f"{label}: error: {e}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(f"{prog} {args.command}: interrupted; outputs not finished were not written", file=sys.stderr)
+        print(f"{label}: interrupted{interrupted_note}", file=sys.stderr)
         return 130
-    except (OSError, MemoryError) as e:
-        print(f"{prog} {args.command}: error: {e}", file=sys.stderr)
-        return 1
     except Exception as e:  # an unexpected failure is a bug: say so in one line unless debugging
         if os.environ.get("GB_DEBUG"):
             raise
-        print(f"{prog} {args.command}: internal error: {type(e).__name__}: {e} "
+        print(f"{label}: internal error: {type(e).__name__}: {e} "
               f"(please report it; rerun with GB_DEBUG=1 for a traceback)", file=sys.stderr)
         return 3
 

@@ -126,84 +126,76 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    from gbcal.display import run_script
+
     args = build_parser().parse_args(argv)
+    return run_script("guided_calibration", lambda devices: _run(args, devices))
+
+
+def _run(args, devices) -> int:
     log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
-    display = camera = None
-    try:
-        from gbcal.board import parse_board
-        from gbcal.display import VideoCamera, choose_display
-        from gbcal.guided import QualityLimits, check_new_session_folder, run_capture
-        from gbscan.pattern import PatternSpec
+    from gbcal.board import parse_board
+    from gbcal.display import VideoCamera, choose_display
+    from gbcal.guided import QualityLimits, check_new_session_folder, run_capture
+    from gbscan.pattern import PatternSpec
 
-        board = parse_board(args.board, args.square_mm)
-        spec = PatternSpec(args.projector[0], args.projector[1], args.stripe_px, not args.no_markers)
-        if args.poses < 1:
-            raise GBError("--poses must be at least 1")
-        max_blur_px = args.max_blur_px or (7.0 * args.sim_scale if args.simulate else 7.0)
-        limits = QualityLimits(max_sharpness_px=max_blur_px, max_motion_px=args.max_motion_px,
-                               min_modulation_dn=args.min_modulation)
-        check_new_session_folder(args.session)
-        kind = args.display or ("none" if args.simulate else "auto")
-        if kind == "none" and not args.simulate:
-            raise GBError("--display none works only with --simulate (at a rig the keys come from the live window)")
-        extra = {}
-        if args.simulate:
-            from gbcal.guidedsim import SimulatedRig, parse_faults, script_for
-            from gbscan.rig import Rig, paper_rig
+    board = parse_board(args.board, args.square_mm)
+    spec = PatternSpec(args.projector[0], args.projector[1], args.stripe_px, not args.no_markers)
+    if args.poses < 1:
+        raise GBError("--poses must be at least 1")
+    max_blur_px = args.max_blur_px or (7.0 * args.sim_scale if args.simulate else 7.0)
+    limits = QualityLimits(max_sharpness_px=max_blur_px, max_motion_px=args.max_motion_px,
+                           min_modulation_dn=args.min_modulation)
+    check_new_session_folder(args.session)
+    kind = args.display or ("none" if args.simulate else "auto")
+    if kind == "none" and not args.simulate:
+        raise GBError("--display none works only with --simulate (at a rig the keys come from the live window)")
+    extra = {}
+    if args.simulate:
+        from gbcal.guidedsim import SimulatedRig, parse_faults, script_for
+        from gbscan.rig import Rig, paper_rig
 
-            true = paper_rig()
-            if (spec.width, spec.height) != (true.projector.width, true.projector.height):
-                raise GBError("--simulate uses the paper rig's 1024x768 projector; drop --projector")
-            rig = Rig(true.camera.scaled(args.sim_scale), true.projector, true.R_cam_proj, true.t_cam_proj)
-            steps = script_for(args.poses, parse_faults(args.sim_faults, args.poses))
-            # spare poses: the simulated operator tries another position after an unexpected rejection
-            poses = scripted_poses(rig, board, args.poses) + scripted_poses(rig, board, SPARE_POSES, seed=2)
-            world = SimulatedRig(rig, board, poses, steps, preset=args.sim_preset)
-            display = world.display(choose_display(kind, args.projector, (args.screen_x, args.screen_y),
-                                                   pattern_size=board.pattern_size, log=log))
-            camera = world.camera
-            extra["simulated"] = True
-            log(f"simulated rig: camera {rig.camera.width}x{rig.camera.height}, {args.poses} scripted poses, "
-                f"display {display.name}")
-        else:
-            display = choose_display(kind, args.projector, (args.screen_x, args.screen_y),
-                                     pattern_size=board.pattern_size, log=log)
-            log(f"display: {display.name}; projector window {spec.width}x{spec.height} at "
-                f"+{args.screen_x}+{args.screen_y}")
-            camera = VideoCamera(args.camera, args.camera_size)
-        display.show_projector(np.zeros((spec.height, spec.width, 3), np.uint8))  # map the window, then check it
-        for problem in display.problems():
-            log(f"warning: {problem}")
-        out = run_capture(args.session, display, camera, board, spec, n_poses=args.poses,
-                          settle_ms=args.settle_ms, drop_frames=args.drop_frames, limits=limits, log=log, extra=extra)
-        display.close()
-        camera.close()
-        display = camera = None
-        if out.status == "aborted":
-            raise GBError("aborted (ESC): nothing written")
-        if out.status == "empty":
-            raise GBError("no pose captured; nothing written")
-        log(f"session written: {args.session} ({len(out.accepted)} poses, {out.rejected} captures rejected)")
-        if args.no_calibrate:
-            return 0
-        from gbcal.calibrate import calibrate_session, save_run, summary_lines
-
-        run = calibrate_session(args.session, log=log)
-        path, npz = save_run(args.calib or Path(args.session) / "calib.yaml", run)
-        for line in summary_lines(run):
-            print(line)
-        print(f"wrote {path} and {npz.name}")
+        true = paper_rig()
+        if (spec.width, spec.height) != (true.projector.width, true.projector.height):
+            raise GBError("--simulate uses the paper rig's 1024x768 projector; drop --projector")
+        rig = Rig(true.camera.scaled(args.sim_scale), true.projector, true.R_cam_proj, true.t_cam_proj)
+        steps = script_for(args.poses, parse_faults(args.sim_faults, args.poses))
+        # spare poses: the simulated operator tries another position after an unexpected rejection
+        poses = scripted_poses(rig, board, args.poses) + scripted_poses(rig, board, SPARE_POSES, seed=2)
+        world = SimulatedRig(rig, board, poses, steps, preset=args.sim_preset)
+        display = devices.open(world.display(choose_display(kind, args.projector, (args.screen_x, args.screen_y),
+                                                            pattern_size=board.pattern_size, log=log)))
+        camera = devices.open(world.camera)
+        extra["simulated"] = True
+        log(f"simulated rig: camera {rig.camera.width}x{rig.camera.height}, {args.poses} scripted poses, "
+            f"display {display.name}")
+    else:
+        display = devices.open(choose_display(kind, args.projector, (args.screen_x, args.screen_y),
+                                              pattern_size=board.pattern_size, log=log))
+        log(f"display: {display.name}; projector window {spec.width}x{spec.height} at "
+            f"+{args.screen_x}+{args.screen_y}")
+        camera = devices.open(VideoCamera(args.camera, args.camera_size))
+    display.show_projector(np.zeros((spec.height, spec.width, 3), np.uint8))  # map the window, then check it
+    for problem in display.problems():
+        log(f"warning: {problem}")
+    out = run_capture(args.session, display, camera, board, spec, n_poses=args.poses,
+                      settle_ms=args.settle_ms, drop_frames=args.drop_frames, limits=limits, log=log, extra=extra)
+    devices.close_all()   # the windows go before the calibration's minutes
+    if out.status == "aborted":
+        raise GBError("aborted (ESC): nothing written")
+    if out.status == "empty":
+        raise GBError("no pose captured; nothing written")
+    log(f"session written: {args.session} ({len(out.accepted)} poses, {out.rejected} captures rejected)")
+    if args.no_calibrate:
         return 0
-    except GBError as e:
-        print(f"guided_calibration: error: {e}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("guided_calibration: interrupted", file=sys.stderr)
-        return 130
-    finally:
-        for dev in (display, camera):
-            if dev is not None:
-                dev.close()
+    from gbcal.calibrate import calibrate_session, save_run, summary_lines
+
+    run = calibrate_session(args.session, log=log)
+    path, npz = save_run(args.calib or Path(args.session) / "calib.yaml", run)
+    for line in summary_lines(run):
+        print(line)
+    print(f"wrote {path} and {npz.name}")
+    return 0
 
 
 if __name__ == "__main__":
