@@ -465,17 +465,23 @@ class VideoCamera:
     (H, W, 3) uint8 RGB; ``drop(n)`` discards ``n`` frames the driver has buffered.
 
     size : optional (W, H) to request from the camera (checked: GBError if it delivers another).
+    fourcc : optional pixel format to request (e.g. "RGB3", "BGR3", "YUYV", "MJPG"; what the device
+        offers: ``v4l2-ctl --list-formats-ext``); :attr:`fourcc` is what it delivers.
     """
 
-    def __init__(self, source: str, size: tuple[int, int] | None = None):
+    def __init__(self, source: str, size: tuple[int, int] | None = None, fourcc: str | None = None):
         import cv2
 
         self.cv2 = cv2
+        if fourcc and len(fourcc) != 4:
+            raise GBError(f"--camera-fourcc must be 4 characters such as RGB3 or YUYV, got '{fourcc}'")
         src = int(source) if str(source).isdigit() else str(source)
         self.source = source
         self.cap = cv2.VideoCapture(src)
         if not self.cap.isOpened():
             raise GBError(f"cannot open camera '{source}' (a device index such as 0, or a stream URL)")
+        if fourcc:
+            self.cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*fourcc))
         if size is not None:
             self.cap.set(cv2.CAP_PROP_FRAME_WIDTH, int(size[0]))
             self.cap.set(cv2.CAP_PROP_FRAME_HEIGHT, int(size[1]))
@@ -483,6 +489,27 @@ class VideoCamera:
         if size is not None and (first.shape[1], first.shape[0]) != tuple(size):
             raise GBError(f"camera '{source}' delivers {first.shape[1]}x{first.shape[0]} images, not the "
                           f"{size[0]}x{size[1]} asked for (--camera-size)")
+
+    @property
+    def fourcc(self) -> str:
+        """The pixel format the camera delivers (its FourCC, e.g. "YUYV"; "" when not reported)."""
+        from gbscan.frames import fourcc_text
+
+        return fourcc_text(self.cap.get(self.cv2.CAP_PROP_FOURCC))
+
+    def input_warning(self) -> str | None:
+        """One line of warning when the camera's pixel format subsamples chroma or is JPEG (most
+        webcams: YUYV is 4:2:2, MJPG is JPEG), which costs the colour stripes; else None."""
+        from gbscan.frames import CHROMA_SUBSAMPLED
+
+        f = self.fourcc
+        what = "JPEG-compressed" if f.upper() in ("MJPG", "JPEG") else (
+            f"{CHROMA_SUBSAMPLED[f]} chroma" if f in CHROMA_SUBSAMPLED else "")
+        if not what:
+            return None
+        return (f"warning: camera '{self.source}' delivers {f} ({what}): the colour stripes lose resolution "
+                "(see README, 'Camera frames'); ask for an RGB or raw format if it has one (--camera-fourcc, "
+                "formats: v4l2-ctl --list-formats-ext)")
 
     def read(self) -> np.ndarray:
         ok, bgr = self.cap.read()

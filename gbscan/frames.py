@@ -168,14 +168,14 @@ def read_frame(ref: FrameRef, size: tuple[int, int] | None = None) -> np.ndarray
 
 
 #: Codec pixel formats (FourCC, as FFmpeg in OpenCV reports them) that subsample chroma
-_CHROMA_SUBSAMPLED = {"I420": "4:2:0", "IYUV": "4:2:0", "YV12": "4:2:0", "NV12": "4:2:0", "NV21": "4:2:0",
+CHROMA_SUBSAMPLED = {"I420": "4:2:0", "IYUV": "4:2:0", "YV12": "4:2:0", "NV12": "4:2:0", "NV21": "4:2:0",
                       "J420": "4:2:0", "YUY2": "4:2:2", "YUYV": "4:2:2", "UYVY": "4:2:2", "Y42B": "4:2:2",
                       "J422": "4:2:2", "Y41B": "4:1:1"}
 #: Lossless video codecs (FourCC, case-insensitive)
 _LOSSLESS_CODECS = {"ffv1", "hfyu", "ffvh", "png", "mpng", "raw"}
 
 
-def _fourcc(value) -> str:
+def fourcc_text(value) -> str:
     """A FourCC property of cv2.VideoCapture as text ("" when absent), trailing NULs / blanks dropped."""
     v = int(value or 0)
     return v.to_bytes(4, "little").decode("latin-1").rstrip("\x00 ") if v > 0 else ""
@@ -202,8 +202,8 @@ class VideoFrames(FrameSource):
                           "(corrupt, or a codec FFmpeg in OpenCV cannot decode); convert it, e.g. "
                           "'ffmpeg -i IN -c:v ffv1 OUT.mkv', or extract the frames to a folder")
         self.width, self.height = int(first.shape[1]), int(first.shape[0])
-        self.codec = _fourcc(cap.get(cv2.CAP_PROP_FOURCC))
-        self.pixel_format = _fourcc(cap.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT))
+        self.codec = fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
+        self.pixel_format = fourcc_text(cap.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT))
         n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         self.fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
         cap.release()
@@ -221,7 +221,7 @@ class VideoFrames(FrameSource):
 
     def input_warning(self) -> str | None:
         """A warning for a chroma-subsampled (4:2:0 / 4:2:2) or lossy video codec (most are)."""
-        sampling = _CHROMA_SUBSAMPLED.get(self.pixel_format)
+        sampling = CHROMA_SUBSAMPLED.get(self.pixel_format)
         if sampling:
             return (f"warning: video {self.path} stores {sampling} chroma ({self.codec or 'codec ?'} / "
                     f"{self.pixel_format}): the colour stripes lose half their resolution (simulated face: about "

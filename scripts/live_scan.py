@@ -17,8 +17,9 @@ Each saved scan is a folder ``scans/scan_NNN`` with ``frame.png`` (lossless: sca
 
 Before you start: the projector's display extended (not mirrored) at its native resolution,
 --screen-x/--screen-y its top-left in the desktop; the camera's exposure, gain and white balance
-locked (auto exposure chases the stripes); the camera delivering uncompressed frames if it can
-(a JPEG / 4:2:0 stream halves the stripes' colour resolution: see README, "Camera frames").
+locked (auto exposure chases the stripes); the camera delivering uncompressed RGB frames if it
+can (--camera-fourcc; a YUYV, MJPG or 4:2:0 stream halves the stripes' colour resolution: the
+script warns, see README, "Camera frames").
 --depth-range MIN MAX (mm) is the working volume, as for ``gbscan scan``.
 
 --simulate films a simulated face turning before a wall with the paper rig (it needs a
@@ -45,6 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera", default="0", help="camera device index or stream URL (default 0)")
     p.add_argument("--camera-size", type=size_arg, metavar="WxH",
                    help="camera resolution to ask for (default: the calibration's)")
+    p.add_argument("--camera-fourcc", metavar="FOURCC",
+                   help="camera pixel format to ask for, e.g. RGB3 or BGR3 (a YUYV or MJPG webcam format "
+                        "subsamples chroma: the script warns); default: the driver's")
     p.add_argument("--screen-x", type=int, default=1920,
                    help="x offset (px) of the projector's display in the desktop (default 1920)")
     p.add_argument("--screen-y", type=int, default=0, help="y offset of the projector's display (default 0)")
@@ -126,9 +130,10 @@ def _run(args, devices) -> int:
         camera = devices.open(SimulatedCamera(render_pattern(spec), rig))
         log("simulated camera: a face turning before a wall (paper rig, typical preset)")
     else:
-        camera = devices.open(VideoCamera(args.camera, args.camera_size or calib.camera.size))
-        for problem in display.problems():
-            log(f"warning: {problem}")
+        camera = devices.open(VideoCamera(args.camera, args.camera_size or calib.camera.size, args.camera_fourcc))
+        for problem in display.problems() + [camera.input_warning()]:
+            if problem:
+                log(problem if problem.startswith("warning:") else f"warning: {problem}")
     dr = args.depth_range or (None, None)
     res = run_live(display, camera, scanner, outdir, max_frames=args.frames, near_mm=dr[0], far_mm=dr[1], log=log)
     print(f"{res.frames} frames scanned ({res.fps:.1f} frames/s), {len(res.saved)} scans saved"

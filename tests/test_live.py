@@ -122,3 +122,20 @@ def test_live_scan_through_tk_windows(xvfb, tmp_path, monkeypatch, capsys):
     out = capsys.readouterr()
     assert rc == 0, out.err
     assert "2 frames scanned" in out.out
+
+
+def test_video_camera_reports_its_pixel_format_and_warns_for_subsampled_chroma(tmp_path):
+    from gbcal.display import VideoCamera
+    from gbscan.frames import write_video
+
+    imgs = [np.random.default_rng(k).integers(0, 256, (48, 64, 3), dtype=np.uint8) for k in range(3)]
+    mjpg = VideoCamera(str(write_video(tmp_path / "m.avi", imgs, fourcc="MJPG")))
+    ffv1 = VideoCamera(str(write_video(tmp_path / "f.mkv", imgs)))
+    try:
+        assert mjpg.fourcc == "MJPG" and "JPEG-compressed" in mjpg.input_warning()
+        assert ffv1.fourcc.lower() == "ffv1" and ffv1.input_warning() is None
+    finally:
+        mjpg.close()
+        ffv1.close()
+    with pytest.raises(GBError, match="4 characters"):
+        VideoCamera(str(tmp_path / "f.mkv"), fourcc="RGB")
