@@ -135,7 +135,9 @@ def run_live(display, camera, scanner, outdir, *, max_frames: int | None = None,
     display.show_projector(render_pattern(scanner.pattern))
     res = LiveResult()
     message, ok = "scanning: hold the object in the projector's light", True
-    n_saved = len(list(outdir.glob("scan_*"))) if outdir.is_dir() else 0
+    # number on from the highest scan_NNN already there (folders may have been removed in between)
+    n_saved = max([int(p.name[5:]) for p in outdir.glob("scan_*") if p.name[5:].isdigit()], default=0) \
+        if outdir.is_dir() else 0
     t_start = time.perf_counter()
     rate = 0.0
     t_prev = t_start

@@ -45,9 +45,10 @@ def test_live_session_scans_every_frame_and_saves_on_space(tmp_path, scanner):
     again = scanner.scan(read_image_rgb(folder / "frame.png"))
     np.testing.assert_array_equal(np.load(folder / "xyz.npy"), again.xyz)
     assert again.n_points > 100_000
-    # a second session into the same folder numbers on
+    # a second session into the same folder numbers on from the highest scan there
+    (tmp_path / "out" / "scan_007").mkdir()
     res2 = run_live(NullDisplay(keys=[" "]), cam, scanner, tmp_path / "out", max_frames=1)
-    assert res2.status == "frames" and [p.name for p in res2.saved] == ["scan_002"]
+    assert res2.status == "frames" and [p.name for p in res2.saved] == ["scan_008"]
 
 
 def test_save_scan_is_all_or_nothing(tmp_path, scanner, monkeypatch):
