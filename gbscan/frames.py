@@ -31,11 +31,13 @@ VIDEO_SUFFIXES = (".avi", ".mkv", ".mp4", ".mov", ".m4v", ".webm", ".mpg", ".mpe
 
 @dataclass(frozen=True)
 class FrameRef:
-    """One frame of an input: its number, a human-readable source, and its file (folder input)."""
+    """One frame of an input: its number, a human-readable source, its file (folder input), and
+    the Bayer pattern of a raw mosaic file ("": a colour image)."""
 
     index: int
     source: str
     path: Path | None = None
+    bayer: str = ""
 
 
 @contextlib.contextmanager
@@ -115,8 +117,9 @@ class FolderFrames(FrameSource):
 
     kind = "folder"
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, bayer: str = ""):
         self.path = Path(path)
+        self.bayer = bayer
         if not self.path.is_dir():
             raise GBError(f"input folder {self.path} does not exist")
         files, ignored = [], []
@@ -143,7 +146,7 @@ class FolderFrames(FrameSource):
 
     def ref(self, index: int) -> FrameRef:
         p = self.files[index]
-        return FrameRef(index, p.name, p)
+        return FrameRef(index, p.name, p, self.bayer)
 
     def frames(self, refs, size=None):
         for r in refs:
@@ -162,7 +165,7 @@ def read_frame(ref: FrameRef, size: tuple[int, int] | None = None) -> np.ndarray
     if ref.path is None:
         return GBError(f"frame {ref.index} ({ref.source}) has no file to read")
     try:
-        return read_image_rgb(ref.path, size=size, what="frame")
+        return read_image_rgb(ref.path, size=size, what="frame", bayer=ref.bayer)
     except GBError as e:
         return e
 
@@ -273,11 +276,15 @@ class VideoFrames(FrameSource):
             cap.release()
 
 
-def open_frames(path: str | Path) -> FrameSource:
-    """A folder of images or a video file; GBError naming the path if it is neither."""
+def open_frames(path: str | Path, bayer: str = "") -> FrameSource:
+    """A folder of images or a video file; GBError naming the path if it is neither.  ``bayer``:
+    the folder's images are raw mosaics of this pattern (:func:`gbscan.io.demosaic`)."""
     path = Path(path)
     if path.is_dir():
-        return FolderFrames(path)
+        return FolderFrames(path, bayer)
+    if bayer:
+        raise GBError(f"--bayer applies to a folder of raw frames; {path} is not a folder (a video's frames "
+                      "come out of FFmpeg in colour already)")
     if not path.exists():
         raise GBError(f"input {path} does not exist (give a folder of frames or a video file)")
     if path.suffix.lower() in IMAGE_SUFFIXES:

@@ -184,11 +184,34 @@ def _first_line(e: Exception) -> str:
 
 
 # -- images ------------------------------------------------------------------------------------
-def read_image_rgb(path, *, size: tuple[int, int] | None = None, what: str = "image") -> np.ndarray:
+#: Bayer mosaics (named by the sensor's top-left 2x2, row by row) -> OpenCV's edge-aware
+#: demosaicing code.  OpenCV's COLOR_Bayer<XXXX>2RGB aliases are named the same way (checked in tests).
+BAYER_CODES = {"RGGB": "COLOR_BayerRGGB2RGB_EA", "BGGR": "COLOR_BayerBGGR2RGB_EA",
+               "GRBG": "COLOR_BayerGRBG2RGB_EA", "GBRG": "COLOR_BayerGBRG2RGB_EA"}
+
+
+def demosaic(raw: np.ndarray, pattern: str) -> np.ndarray:
+    """A raw Bayer mosaic (H, W) uint8 or uint16 -> RGB (H, W, 3) of the same type, by OpenCV's
+    edge-aware demosaicing (what ``gbscan.sim`` models a colour camera with).  ``pattern``: the
+    sensor's top-left 2x2, one of :data:`BAYER_CODES`."""
+    import cv2
+
+    if pattern not in BAYER_CODES:
+        raise GBError(f"Bayer pattern must be one of {', '.join(BAYER_CODES)}, got {pattern!r}")
+    raw = np.asarray(raw)
+    if raw.ndim != 2 or raw.dtype not in (np.uint8, np.uint16) or min(raw.shape) < 2:
+        raise GBError(f"a raw Bayer mosaic must be one 8- or 16-bit channel, got {raw.shape} {raw.dtype}")
+    return cv2.cvtColor(np.ascontiguousarray(raw), getattr(cv2, BAYER_CODES[pattern]))
+
+
+def read_image_rgb(path, *, size: tuple[int, int] | None = None, what: str = "image",
+                   bayer: str = "") -> np.ndarray:
     """Read a colour image as RGB uint8 (H, W, 3).
 
-    16-bit images are scaled to 8 bits.  Raises GBError naming the file if it is missing,
-    unreadable, grey (the decoder needs colour), or not ``size = (width, height)`` when given.
+    16-bit images are scaled to 8 bits.  ``bayer`` (e.g. "RGGB"): the file is a camera's raw
+    mosaic, one channel, demosaiced here (:func:`demosaic`).  Raises GBError naming the file if it
+    is missing, unreadable, grey (the decoder needs colour) -- or colour when ``bayer`` says raw --,
+    or not ``size = (width, height)`` when given.
     """
     import cv2
 
@@ -198,12 +221,19 @@ def read_image_rgb(path, *, size: tuple[int, int] | None = None, what: str = "im
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise GBError(f"{what} {path} could not be read as an image (corrupt or unsupported format)")
+    if img.dtype not in (np.uint8, np.uint16):
+        raise GBError(f"{what} {path} has pixel type {img.dtype}; expected 8- or 16-bit")
+    grey = img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 1)
+    if bayer:
+        if not grey:
+            raise GBError(f"{what} {path} is a colour image, not a raw Bayer mosaic; drop --bayer")
+        img = demosaic(img.reshape(img.shape[:2]), bayer)[:, :, ::-1]   # BGR like imread's
+        grey = False
     if img.dtype == np.uint16:
         img = (img >> 8).astype(np.uint8)
-    elif img.dtype != np.uint8:
-        raise GBError(f"{what} {path} has pixel type {img.dtype}; expected 8- or 16-bit")
-    if img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 1):
-        raise GBError(f"{what} {path} is a grey image; the green-blue decoder needs a colour (RGB) image")
+    if grey:
+        raise GBError(f"{what} {path} is a grey image; the green-blue decoder needs a colour (RGB) image "
+                      "(a camera's raw Bayer mosaic: give --bayer PATTERN, e.g. RGGB)")
     if img.shape[2] == 4:
         img = img[:, :, :3]
     rgb = np.ascontiguousarray(img[:, :, ::-1])

@@ -160,3 +160,37 @@ def test_input_warning_for_frames_that_lose_the_colour_stripes(tmp_path):
     (tmp_path / "junk.jpg").write_bytes(b"\xff\xd8\xff\xdb\x00")
     for name in ("cut.jpg", "junk.jpg", "missing.jpg"):
         assert jpeg_info(tmp_path / name) is None and input_warning(tmp_path / name) is None
+
+
+def test_raw_bayer_frames_are_demosaiced_on_reading(tmp_path):
+    """read_image_rgb(bayer=...): a camera's raw mosaic (8 or 16 bit, one channel) -> OpenCV's edge-aware
+    demosaicing; a colour file with --bayer, or a grey one without, is one clear error."""
+    import cv2
+
+    from gbscan.io import BAYER_CODES, demosaic
+    from gbscan.pattern import render_pattern
+    from gbscan import sim
+
+    rgb = sim.render(sim.paper_rig(), sim.scenes.plane(650.0), render_pattern(PatternSpec()), "clean", seed=0).image
+    mosaic = np.empty(rgb.shape[:2], np.uint8)
+    mosaic[0::2, 0::2], mosaic[0::2, 1::2] = rgb[0::2, 0::2, 0], rgb[0::2, 1::2, 1]   # R G
+    mosaic[1::2, 0::2], mosaic[1::2, 1::2] = rgb[1::2, 0::2, 1], rgb[1::2, 1::2, 2]   # G B
+    write_png(tmp_path / "raw.png", mosaic)
+    got = read_image_rgb(tmp_path / "raw.png", bayer="RGGB", size=(640, 480))
+    np.testing.assert_array_equal(got, demosaic(mosaic, "RGGB"))
+    # the right channels: a flat green stripe area stays green (the mosaic's pattern name is OpenCV's)
+    assert abs(got.astype(int) - rgb.astype(int)).mean() < 3.0
+    wrong = read_image_rgb(tmp_path / "raw.png", bayer="BGGR")
+    assert abs(wrong.astype(int) - rgb.astype(int)).mean() > 3 * abs(got.astype(int) - rgb.astype(int)).mean()
+    cv2.imwrite(str(tmp_path / "raw16.png"), mosaic.astype(np.uint16) * 257)
+    got16 = read_image_rgb(tmp_path / "raw16.png", bayer="RGGB")
+    assert got16.dtype == np.uint8 and np.abs(got16.astype(int) - got.astype(int)).max() <= 1
+    with pytest.raises(GBError, match="drop --bayer"):
+        read_image_rgb(write_png(tmp_path / "rgb.png", rgb), bayer="RGGB")
+    with pytest.raises(GBError, match="--bayer PATTERN"):
+        read_image_rgb(tmp_path / "raw.png")
+    with pytest.raises(GBError, match="Bayer pattern must be one of"):
+        demosaic(mosaic, "RGBW")
+    with pytest.raises(GBError, match="one 8- or 16-bit channel"):
+        demosaic(rgb, "RGGB")
+    assert set(BAYER_CODES) == {"RGGB", "BGGR", "GRBG", "GBRG"}

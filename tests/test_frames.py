@@ -81,6 +81,25 @@ def test_input_warning_for_jpeg_frames_and_chroma_subsampled_video(tmp_path):
     assert "4:2:0" in mjpg.input_warning() and "MJPG" in mjpg.input_warning()
 
 
+def test_folder_of_raw_bayer_frames(tmp_path):
+    from gbscan.io import demosaic
+
+    raws = [np.random.default_rng(k).integers(0, 256, (48, 64), dtype=np.uint8) for k in range(2)]
+    for k, r in enumerate(raws):
+        write_png(tmp_path / f"r{k}.png", r)
+    src = open_frames(tmp_path, bayer="BGGR")
+    out = list(src.frames(src.refs(), size=(64, 48)))
+    for (ref, img), raw in zip(out, raws):
+        assert ref.bayer == "BGGR"
+        np.testing.assert_array_equal(img, demosaic(raw, "BGGR"))
+    assert isinstance(list(open_frames(tmp_path).frames(src.refs()[:1]))[0][1], np.ndarray)  # the ref carries it
+    plain = list(open_frames(tmp_path).frames(open_frames(tmp_path).refs()))
+    assert all(isinstance(img, GBError) and "--bayer" in str(img) for _, img in plain)
+    video = write_video(tmp_path / "v.mkv", _frames(2))
+    with pytest.raises(GBError, match="applies to a folder of raw frames"):
+        open_frames(video, bayer="RGGB")
+
+
 def test_video_wrong_size_and_past_end(tmp_path):
     path = write_video(tmp_path / "v.avi", _frames(3))
     src = open_frames(path)

@@ -195,6 +195,29 @@ def test_scan_command_warns_about_a_chroma_subsampled_jpeg(tmp_path, monkeypatch
     assert rc == 0 and "warning" not in err
 
 
+def test_raw_bayer_frame_from_the_simulator_to_the_cloud(tmp_path, capsys, calib_file, scanner):
+    """gbscan simulate --bayer RGGB --raw writes a mosaic; gbscan scan/decode --bayer RGGB demosaic and scan it
+    as the API does with gbscan.io.demosaic; without --bayer, one line says what to give."""
+    import cv2
+
+    from gbscan.io import demosaic
+
+    raw = tmp_path / "raw.png"
+    rc, text, err = run_main(capsys, "simulate", "head", "-o", raw, "--bayer", "RGGB", "--raw")
+    assert rc == 0 and "raw mosaic" in text, err
+    mosaic = cv2.imread(str(raw), cv2.IMREAD_UNCHANGED)
+    assert mosaic.shape == (480, 640) and mosaic.dtype == np.uint8
+    rc, text, err = run_main(capsys, "scan", raw, "--calib", calib_file, "-o", tmp_path / "c.ply", "--bayer", "RGGB")
+    assert rc == 0, err
+    want = scanner.scan(demosaic(mosaic, "RGGB"))
+    assert len(read_cloud_ply(tmp_path / "c.ply").points) == want.n_points > 50_000
+    rc, text, err = run_main(capsys, "decode", raw, "--calib", calib_file, "-o", tmp_path / "s.npz", "--bayer", "RGGB")
+    assert rc == 0, err
+    np.testing.assert_array_equal(np.load(tmp_path / "s.npz")["column"], want.stripemap.column)
+    rc, text, err = run_main(capsys, "scan", raw, "--calib", calib_file, "-o", tmp_path / "c2.ply")
+    _one_line_error(rc, err, "--bayer PATTERN")
+
+
 def _one_line_error(rc, err, match):
     assert rc == 1, err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err

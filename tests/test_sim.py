@@ -300,6 +300,23 @@ def test_bayer_mosaic_keeps_flat_colours(pattern):
         dataclasses.replace(cond, bayer="RGBW")
 
 
+def test_bayer_raw_is_the_mosaic_the_bayer_camera_demosaics():
+    from gbscan.io import demosaic
+    from gbscan.sim.render import camera_image
+
+    cam = sim.paper_rig().camera.scaled(0.25)
+    lin = np.random.default_rng(5).uniform(0.05, 0.9, (cam.height, cam.width, 3)).astype(np.float32)
+    cond = dataclasses.replace(sim.preset("typical"), bayer="GRBG")
+    rgb = camera_image(lin, cam, cond, np.random.default_rng(2))
+    raw = camera_image(lin, cam, dataclasses.replace(cond, bayer_raw=True), np.random.default_rng(2))
+    assert raw.shape == (cam.height, cam.width) and raw.dtype == np.uint8
+    np.testing.assert_array_equal(demosaic(raw, "GRBG"), rgb)
+    with pytest.raises(GBError, match="bayer_raw needs"):
+        dataclasses.replace(sim.preset("typical"), bayer_raw=True)
+    with pytest.raises(GBError, match="not stored as JPEG"):
+        dataclasses.replace(cond, bayer_raw=True, jpeg_quality=90)
+
+
 def test_jpeg_camera_is_the_lossless_frame_through_opencvs_encoder():
     """Conditions.jpeg_quality: the frame the same render gives losslessly, JPEG-encoded and decoded."""
     import cv2

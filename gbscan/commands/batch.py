@@ -93,7 +93,7 @@ def run(args) -> int:
                             decode_params=decode_params_from_args(args),
                             clean_params=clean_params_from_args(args, none_if_default=True),
                             temporal=args.temporal)
-    with open_frames(args.input) as source:
+    with open_frames(args.input, args.bayer) as source:
         what = (f"{len(source)} frames in folder {source.path}" if source.kind == "folder"
                 else f"video {source.path.name}: {len(source)} frames of {source.width}x{source.height}")
         where = f"Dask cluster {args.scheduler}" if args.scheduler else f"{args.workers or 'all'} local workers"

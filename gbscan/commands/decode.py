@@ -85,6 +85,12 @@ def add_decode_arguments(parser) -> None:
         g.add_argument(old, dest=_dest(flag), type=DECODE_FLAGS[flag][1], help=argparse.SUPPRESS)
     g.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
                    help="any other DecodeParams field, e.g. min_contrast=0.2 (repeatable)")
+    from ..io import BAYER_CODES
+
+    parser.add_argument("--bayer", default="", choices=tuple(BAYER_CODES), metavar="PATTERN",
+                        help="the frames are a colour camera's raw Bayer mosaics (one channel, 8 or 16 bit) with "
+                             f"this top-left 2x2 ({', '.join(BAYER_CODES)}), demosaiced by OpenCV's edge-aware "
+                             "method; default: colour frames")
 
 
 def decode_params_from_args(args):
@@ -233,7 +239,7 @@ def run(args) -> int:
             raise GBError(f"--preview {d} exists and is not a folder")
         if not d.parent.is_dir():
             raise GBError(f"--preview {d}: folder {d.parent} does not exist (create it first)")
-    image = read_image_rgb(args.image, size=size)
+    image = read_image_rgb(args.image, size=size, bayer=args.bayer)
     warning = input_warning(args.image)
     if warning:
         print(warning, file=sys.stderr, flush=True)

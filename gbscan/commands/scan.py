@@ -142,7 +142,7 @@ def run(args) -> int:
 
     calib = load_calibration(args.calib)
     cam = calib.camera
-    image = read_image_rgb(args.image, size=(cam.width, cam.height), what="image")
+    image = read_image_rgb(args.image, size=(cam.width, cam.height), what="image", bayer=args.bayer)
     warning = input_warning(args.image)
     if warning:
         print(warning, file=sys.stderr, flush=True)

@@ -21,6 +21,9 @@ def add_arguments(p):
                    help="imaging conditions (default typical)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     add_bayer_argument(p)
+    p.add_argument("--raw", action="store_true",
+                   help="with --bayer: write the raw mosaic (one channel), as a machine-vision camera delivers "
+                        "it (scan it with 'gbscan scan --bayer PATTERN')")
     add_jpeg_arguments(p)
     p.add_argument("--distance-mm", type=float, default=650.0, help="scene distance in mm (default 650)")
     p.add_argument("--truth", help="also write the ground truth to this .npz")
@@ -65,6 +68,8 @@ def run(args) -> int:
 
     if not args.distance_mm > 0:
         raise GBError(f"--distance-mm must be positive, got {args.distance_mm}")
+    if args.raw and not args.bayer:
+        raise GBError("--raw writes a Bayer camera's mosaic: give --bayer PATTERN too")
     if args.truth and not args.truth.endswith(".npz"):
         raise GBError(f"--truth {args.truth}: the ground truth is written as .npz; give a name ending in .npz")
     rig = sim.paper_rig()
@@ -75,10 +80,10 @@ def run(args) -> int:
         frame = render_pattern(PatternSpec(pw, ph, args.stripe_px, not args.no_markers))
     t0 = time.time()
     scene = make_scene(args.scene, args.distance_mm)
-    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer, **jpeg_fields(args))
+    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer, bayer_raw=args.raw, **jpeg_fields(args))
     r = sim.render(rig, scene, frame, cond, seed=args.seed)
     out = write_png(args.output, r.image)
-    camera = (f", Bayer {args.bayer}" if args.bayer else "") + jpeg_label(args)
+    camera = (f", Bayer {args.bayer}{' raw mosaic' if args.raw else ''}" if args.bayer else "") + jpeg_label(args)
     msg = f"wrote {out} ({args.scene}, preset {args.preset}{camera}, seed {args.seed}, {time.time() - t0:.1f} s)"
     if args.truth:
         r.save_truth(args.truth)

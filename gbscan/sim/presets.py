@@ -70,6 +70,7 @@ class Conditions:
     bayer: str = ""                      # "" = full RGB per pixel; "RGGB" etc. = colour filter mosaic
                                          # sampled per photosite, noise per photosite, then
                                          # demosaiced (OpenCV edge-aware) like a real colour camera
+    bayer_raw: bool = False              # with bayer: deliver the raw mosaic (H, W) uint8, not demosaiced
     jpeg_quality: int = 0                # 0 = lossless frames; 1..100 = stored as JPEG of this quality
     jpeg_sampling: str = "4:2:0"         # its chroma subsampling (4:2:0: most encoders' default)
 
@@ -90,6 +91,10 @@ class Conditions:
             raise GBError(f"bayer must be '' or one of RGGB, BGGR, GRBG, GBRG, got {self.bayer!r}")
         if not (isinstance(self.jpeg_quality, (int, np.integer)) and 0 <= int(self.jpeg_quality) <= 100):
             raise GBError(f"jpeg_quality must be an integer 0 (lossless) .. 100, got {self.jpeg_quality!r}")
+        if self.bayer_raw and not self.bayer:
+            raise GBError("bayer_raw needs a Bayer mosaic (bayer='RGGB', ...)")
+        if self.bayer_raw and self.jpeg_quality:
+            raise GBError("bayer_raw frames are not stored as JPEG (a raw mosaic is the sensor's own data)")
         if self.jpeg_sampling not in JPEG_SAMPLINGS:
             raise GBError(f"jpeg_sampling must be one of {', '.join(JPEG_SAMPLINGS)}, got {self.jpeg_sampling!r}")
         object.__setattr__(self, "crosstalk", _m(c))

@@ -472,14 +472,11 @@ def _jpeg_round_trip(rgb: np.ndarray, cond: Conditions) -> np.ndarray:
     return np.ascontiguousarray(cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1])
 
 
-_BAYER_CODES = {"RGGB": "COLOR_BayerRGGB2RGB_EA", "BGGR": "COLOR_BayerBGGR2RGB_EA",
-                "GRBG": "COLOR_BayerGRBG2RGB_EA", "GBRG": "COLOR_BayerGBRG2RGB_EA"}
-
-
 def _bayer_image(img: np.ndarray, cond: Conditions, rng: np.random.Generator) -> np.ndarray:
     """Colour-filter mosaic: one channel per photosite (pattern named by its top-left 2x2, row
-    by row), noise per photosite, encoding, then OpenCV's edge-aware demosaicing to RGB."""
-    import cv2
+    by row), noise per photosite, encoding, then OpenCV's edge-aware demosaicing to RGB
+    (:func:`gbscan.io.demosaic`) -- or, with ``cond.bayer_raw``, the 8-bit mosaic (H, W) itself."""
+    from ..io import demosaic
 
     H, W = img.shape[:2]
     ch = {"R": 0, "G": 1, "B": 2}
@@ -494,9 +491,7 @@ def _bayer_image(img: np.ndarray, cond: Conditions, rng: np.random.Generator) ->
     if cond.read_noise_dn > 0:
         noisy = noisy + np.float32(cond.read_noise_dn / 255.0) * rng.standard_normal(raw.shape, np.float32)
     mosaic = np.clip(np.rint(encode(noisy, cond.gamma)), 0, 255).astype(np.uint8)
-    # OpenCV's COLOR_Bayer<RGGB...>2RGB aliases are named after the sensor's top-left 2x2 (checked in tests).
-    code = getattr(cv2, _BAYER_CODES[p])
-    return cv2.cvtColor(mosaic, code)
+    return mosaic if cond.bayer_raw else demosaic(mosaic, p)
 
 
 def _rng(seed) -> np.random.Generator:
