@@ -498,6 +498,39 @@ def test_cli_bad_input_is_one_line(tmp_path, calib_file):
         assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
 
+@pytest.mark.slow
+def test_cli_folder_of_raw_bayer_frames(tmp_path, calib_file):
+    """gbscan batch --bayer: each raw mosaic demosaiced as gbscan.io.demosaic does, scanned as gbscan scan does;
+    --bayer on a video is one line."""
+    import dataclasses
+
+    from gbscan import sim
+    from gbscan.io import demosaic
+    from gbscan.pattern import PatternSpec, render_pattern
+    from gbscan.scan import Scanner
+
+    cond = dataclasses.replace(sim.preset("typical"), supersample=1, bayer="GBRG", bayer_raw=True)
+    frames = tmp_path / "raw"
+    frames.mkdir()
+    mosaics = []
+    for i in range(2):
+        m = sim.render(sim.paper_rig(), sim.scenes.sphere((-20.0 + 40.0 * i, 0.0, 650.0), 100.0, wall_mm=900.0),
+                       render_pattern(PatternSpec()), cond, seed=i).image
+        write_png(frames / f"f{i}.png", m)
+        mosaics.append(m)
+    r = _gbscan("batch", frames, "--calib", calib_file, "-o", tmp_path / "out", "--workers", "1", "--bayer", "GBRG",
+                "--quiet")
+    assert r.returncode == 0, r.stdout + r.stderr
+    scanner = Scanner(calib_file)
+    for i, m in enumerate(mosaics):
+        np.testing.assert_array_equal(np.load(tmp_path / "out" / f"frame_{i:06d}.xyz.npy"),
+                                      scanner.scan(demosaic(m, "GBRG")).xyz)
+    video = write_video(tmp_path / "v.mkv", [np.zeros((48, 64, 3), np.uint8)] * 2)
+    r = _gbscan("batch", video, "--calib", calib_file, "-o", tmp_path / "o2", "--bayer", "RGGB")
+    assert r.returncode == 1 and "applies to a folder of raw frames" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
 def _sphere_sequence(n):
     """n frames (640x480) of the simulated rig: a sphere moving right in front of a wall + truth."""
     import dataclasses
