@@ -501,15 +501,15 @@ class VideoCamera:
         """One line of warning when the camera's pixel format subsamples chroma or is JPEG (most
         webcams: YUYV is 4:2:2, MJPG is JPEG), which costs the colour stripes; else None."""
         from gbscan.frames import CHROMA_SUBSAMPLED
+        from gbscan.io import CHROMA_COST
 
         f = self.fourcc
         what = "JPEG-compressed" if f.upper() in ("MJPG", "JPEG") else (
             f"{CHROMA_SUBSAMPLED[f]} chroma" if f in CHROMA_SUBSAMPLED else "")
         if not what:
             return None
-        return (f"warning: camera '{self.source}' delivers {f} ({what}): the colour stripes lose resolution "
-                "(see README, 'Camera frames'); ask for an RGB or raw format if it has one (--camera-fourcc, "
-                "formats: v4l2-ctl --list-formats-ext)")
+        return (f"warning: camera '{self.source}' delivers {f} ({what}): {CHROMA_COST}; ask for an RGB or raw "
+                "format if it has one (--camera-fourcc, formats: v4l2-ctl --list-formats-ext)")
 
     def read(self) -> np.ndarray:
         ok, bgr = self.cap.read()

@@ -23,7 +23,7 @@ from typing import Iterator
 import numpy as np
 
 from .errors import GBError
-from .io import IMAGE_SUFFIXES, input_warning, read_image_rgb
+from .io import CHROMA_COST, IMAGE_SUFFIXES, input_warning, read_image_rgb
 
 #: Video file suffixes opened with cv2.VideoCapture (anything FFmpeg reads; these are the usual ones).
 VIDEO_SUFFIXES = (".avi", ".mkv", ".mp4", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".ts")
@@ -227,8 +227,7 @@ class VideoFrames(FrameSource):
         sampling = CHROMA_SUBSAMPLED.get(self.pixel_format)
         if sampling:
             return (f"warning: video {self.path} stores {sampling} chroma ({self.codec or 'codec ?'} / "
-                    f"{self.pixel_format}): the colour stripes lose half their resolution (simulated face: about "
-                    "half its pixels kept, twice the depth noise); record lossless RGB frames (an image sequence, or "
+                    f"{self.pixel_format}): {CHROMA_COST}; record lossless RGB frames (an image sequence, or "
                     "FFV1 / HuffYUV in RGB): converting this file does not bring the chroma back")
         if self.codec and self.codec.lower() not in _LOSSLESS_CODECS:
             return (f"warning: video {self.path} uses the lossy codec {self.codec}: its artefacts cost points and "

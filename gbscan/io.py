@@ -306,6 +306,12 @@ def jpeg_info(path) -> dict | None:
     return {"sampling": sampling, "quality": quality}
 
 
+#: What halving the colour resolution costs (simulated, ``scripts/coverage_study.py --jpeg``): the
+#: words every input warning about chroma subsampling uses (files, videos, cameras).
+CHROMA_COST = ("the colour stripes lose half their resolution (simulated face, JPEG quality 95 4:2:0: 45 % of "
+               "its pixels kept instead of 84 %, twice the depth noise)")
+
+
 def input_warning(path) -> str | None:
     """One line of warning when a camera frame is stored lossily in a way that costs the colour
     stripes (a JPEG: chroma subsampling or low quality), else None.  Measured on simulated frames
@@ -316,9 +322,8 @@ def input_warning(path) -> str | None:
     q = info["quality"]
     qtext = f", quality ~{q}" if q is not None else ""
     if info["sampling"] != "4:4:4":
-        return (f"warning: {path} is a JPEG with {info['sampling']} chroma subsampling{qtext}: the colour stripes "
-                "lose half their resolution (simulated face, quality 95: 45 % of its pixels kept instead of 84 %, "
-                "twice the depth noise); capture lossless frames (PNG, TIFF) or JPEG 4:4:4 at quality 95+")
+        return (f"warning: {path} is a JPEG with {info['sampling']} chroma subsampling{qtext}: {CHROMA_COST}; "
+                "capture lossless frames (PNG, TIFF) or JPEG 4:4:4 at quality 95+")
     if q is not None and q < 95:
         return (f"warning: {path} is a JPEG of quality ~{q}: its artefacts cost points and add depth noise "
                 "(simulated face, quality 85: 72-76 % of its pixels kept instead of 84-86 %, depth RMS x1.4; "

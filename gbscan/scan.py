@@ -273,13 +273,14 @@ class Scanner:
             raise GBError(f"image is {'x'.join(map(str, image_rgb.shape[1::-1]))} but the calibration's camera "
                           f"is {W}x{H}; scan images from the calibrated camera")
         t0 = time.perf_counter()
-        sm = decode(image_rgb, self.pattern, self.decode_params or DecodeParams(), keep_stages=keep_stages,
+        params = self.decode_params or DecodeParams()
+        sm = decode(image_rgb, self.pattern, params, keep_stages=keep_stages,
                     stripe_range=self.stripe_range)
         t_dec = (time.perf_counter() - t0) * 1e3
         s = self.reconstruct(sm.column, sm.confidence, decoded=sm.valid, clean=clean)
         s.stripe, s.stripemap = sm.stripe, sm
         s.image, s.pattern = image_rgb, self.pattern
-        s.camera_gamma = float((self.decode_params or DecodeParams()).camera_gamma)
+        s.camera_gamma = float(params.camera_gamma)
         s.timings_ms = {"decode": t_dec, **s.timings_ms}
         s.timings_ms["total"] = t_dec + s.timings_ms.get("total", 0.0)
         return s
