@@ -11,6 +11,7 @@ Single-shot green-blue structured-light scanning.
 Workflow:
   1. gbscan pattern -o pattern.png            the frame the projector shows while scanning
   2. gbcal calibrate SESSION -o calib.yaml    calibrate the rig once (see 'gbcal --help')
+     gbscan check IMAGE                       what a frame says about the rig (exposure, light, focus)
   3. gbscan scan IMAGE --calib calib.yaml -o cloud.ply --mesh mesh.ply --preview DIR
      (gbscan decode IMAGE -o stripes.npz --preview DIR shows the decoder's stages alone)
   4. gbscan mesh cloud.ply -o mesh.ply        mesh a saved cloud (grid or poisson)
@@ -18,7 +19,7 @@ Workflow:
   gbscan simulate ... renders scenes with the simulated rig (no hardware needed).
 """
 
-STAGES = ["pattern", "simulate", "decode", "scan", "mesh", "batch"]
+STAGES = ["pattern", "simulate", "check", "decode", "scan", "mesh", "batch"]
 
 
 def main(argv=None) -> int:

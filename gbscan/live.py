@@ -107,15 +107,21 @@ def save_scan(outdir, index: int, frame_rgb: np.ndarray, scan) -> Path:
 @dataclass
 class LiveResult:
     """What a live session did: frames scanned, folders saved, how it ended ("quit": q or ESC,
-    "frames": ``max_frames`` reached), frames per second over the session."""
+    "frames": ``max_frames`` reached), frames per second over the session, and the last rig hint
+    the window showed ("" when the frames looked like a good rig's)."""
 
     frames: int = 0
     saved: list = field(default_factory=list)
     status: str = ""
     fps: float = 0.0
+    hint: str = ""
 
 
 _WHITE, _GREEN, _RED, _GREY, _YELLOW = (235, 235, 235), (90, 220, 90), (240, 80, 80), (150, 150, 150), (240, 210, 60)
+
+
+#: frames between two rig checks (:func:`gbscan.diagnose.check_frame`, ~10 ms) in the live window
+HINT_EVERY = 15
 
 
 def run_live(display, camera, scanner, outdir, *, max_frames: int | None = None, near_mm: float | None = None,
@@ -123,7 +129,9 @@ def run_live(display, camera, scanner, outdir, *, max_frames: int | None = None,
     """Show the scanner's pattern on the projector, then scan camera frames until q / ESC (or
     ``max_frames``): each frame's picture (:func:`compose`) shows the frame, its depth map
     (:func:`depth_picture` between ``near_mm`` and ``far_mm``), the points, the time per scan and
-    the frame rate; SPACE saves the current scan into ``outdir`` (:func:`save_scan`).
+    the frame rate, and the first two warnings of the rig check (:func:`gbscan.diagnose.check_frame`,
+    every ``HINT_EVERY`` frames: dim, saturated, noisy, ambient light, ...); SPACE saves the
+    current scan into ``outdir`` (:func:`save_scan`).
 
     scanner : a :class:`gbscan.scan.Scanner` (its pattern is projected).  A camera frame of the
     wrong size raises GBError (naming both sizes).
@@ -139,6 +147,7 @@ def run_live(display, camera, scanner, outdir, *, max_frames: int | None = None,
     n_saved = max([int(p.name[5:]) for p in outdir.glob("scan_*") if p.name[5:].isdigit()], default=0) \
         if outdir.is_dir() else 0
     t_start = time.perf_counter()
+    hint = ""
     rate = 0.0
     t_prev = t_start
     while True:
@@ -150,6 +159,11 @@ def run_live(display, camera, scanner, outdir, *, max_frames: int | None = None,
         rate = 1.0 / max(now - t_prev, 1e-6) if res.frames == 0 else 0.8 * rate + 0.2 / max(now - t_prev, 1e-6)
         t_prev = now
         res.frames += 1
+        if scan.stripemap is not None and (res.frames == 1 or res.frames % HINT_EVERY == 0):
+            from .diagnose import check_frame
+
+            warns = check_frame(frame, scan.stripemap, scanner.decode_params).warnings()
+            hint = res.hint = "; ".join(f.short for f in warns[:2])
         reasons = scan.stripemap.stats.get("reasons", {}) if scan.stripemap is not None else {}
         share = {k: 100.0 * reasons.get(k, 0) / max(scan.reason.size, 1) for k in ("dark", "saturated", "unindexed")}
         lines = [(f"frame {res.frames}: {scan.n_points} points ({100 * scan.coverage:.1f} % of the image), "
@@ -157,6 +171,8 @@ def run_live(display, camera, scanner, outdir, *, max_frames: int | None = None,
                  (f"dark {share['dark']:.0f} %, saturated {share['saturated']:.1f} %, unindexed "
                   f"{share['unindexed']:.1f} % of the image", _GREY),
                  (message, _GREEN if ok else _RED), (KEYS, _YELLOW)]
+        if hint:
+            lines.insert(2, (f"rig: {hint}", _RED))
         display.show_image(compose(frame, depth_picture(scan.xyz, scan.valid, near_mm, far_mm), lines))
         key = display.poll_key()
         if key == " ":

@@ -51,6 +51,18 @@ def test_live_session_scans_every_frame_and_saves_on_space(tmp_path, scanner):
     assert res2.status == "frames" and [p.name for p in res2.saved] == ["scan_008"]
 
 
+def test_live_window_shows_the_rig_check(scanner):
+    # a good rig: no hint line; a dim, noisy, washed-out one (the hard preset): the rig check's first two
+    # warnings (gbscan.diagnose), one more line in the window's panel
+    good, bad = NullDisplay(), NullDisplay()
+    r_good = run_live(good, SimulatedCamera(render_pattern(scanner.pattern)), scanner, "unused", max_frames=1)
+    r_bad = run_live(bad, SimulatedCamera(render_pattern(scanner.pattern), preset="hard"), scanner, "unused",
+                     max_frames=1)
+    assert r_good.hint == ""
+    assert "noisy stripes (SNR 4)" in r_bad.hint and r_bad.hint.count("; ") == 1    # measured: dim, noisy
+    assert bad.last_image.shape[0] == good.last_image.shape[0] + 20
+
+
 def test_save_scan_is_all_or_nothing(tmp_path, scanner, monkeypatch):
     cam = SimulatedCamera(render_pattern(scanner.pattern))
     frame = cam.read()

@@ -16,8 +16,6 @@ HELP = "decode one frame's stripes -> projector columns (stripes.npz, stage prev
 
 
 def add_arguments(p):
-    from ..cli_common import size_arg
-
     p.add_argument("image", help="camera image (colour PNG/JPEG/TIFF) of the projected stripe pattern")
     p.add_argument("-o", "--output", help="output .npz (column, stripe, confidence, mask, ...)")
     p.add_argument("--preview", metavar="DIR", help="write the decoder's stage pictures (PNG) into DIR")
@@ -25,11 +23,32 @@ def add_arguments(p):
     p.add_argument("--depth-range", type=float, nargs=2, metavar=("MIN_MM", "MAX_MM"),
                    help="the working volume (needs --calib with light planes): the indexing rules out offsets "
                         "that would put a region outside it, as 'gbscan scan --depth-range' does")
+    add_pattern_arguments(p)
+    add_decode_arguments(p)
+
+
+def add_pattern_arguments(p) -> None:
+    """The projected pattern when no --calib gives it: --stripe-px, --no-markers, --projector
+    (read back with :func:`pattern_from_args`)."""
+    from ..cli_common import size_arg
+
     p.add_argument("--stripe-px", type=int, default=8, help="stripe width in projector px (default 8)")
     p.add_argument("--no-markers", action="store_true", help="the pure green/blue pattern (relative index only)")
     p.add_argument("--projector", type=size_arg, default=(1024, 768), metavar="WxH",
                    help="projector resolution (default 1024x768)")
-    add_decode_arguments(p)
+
+
+def pattern_from_args(args, cal=None):
+    """The :class:`gbscan.pattern.PatternSpec` of ``cal`` (a loaded calibration, from --calib) or
+    of the flags of :func:`add_pattern_arguments`."""
+    from ..errors import GBError
+    from ..pattern import PatternSpec
+
+    if cal is not None:
+        if cal.pattern is None:
+            raise GBError(f"--calib {args.calib} records no pattern; give --stripe-px/--no-markers instead")
+        return cal.pattern
+    return PatternSpec(args.projector[0], args.projector[1], args.stripe_px, not args.no_markers)
 
 
 # -- the decoder's flags: one set for every command that decodes (decode, scan, batch) ----------
@@ -198,7 +217,6 @@ def run(args) -> int:
     from ..decode import decode
     from ..errors import GBError
     from ..io import input_warning, read_image_rgb, save_npz
-    from ..pattern import PatternSpec
 
     if not args.output and not args.preview:
         raise GBError("nothing to write: give -o stripes.npz and/or --preview DIR")
@@ -214,9 +232,7 @@ def run(args) -> int:
         from ..calibfile import load_calibration
 
         cal = load_calibration(args.calib, require_planes=args.depth_range is not None)
-        if cal.pattern is None:
-            raise GBError(f"--calib {args.calib} records no pattern; give --stripe-px/--no-markers instead")
-        pattern = cal.pattern
+        pattern = pattern_from_args(args, cal)
         size = cal.camera.size
         if args.depth_range is not None:
             from ..clean import CleanParams
@@ -229,7 +245,7 @@ def run(args) -> int:
                 print(f"note: --calib {args.calib}: the light planes are not one projector's pencil (or the range "
                       "bounds nothing); decoding without a working volume")
     else:
-        pattern = PatternSpec(args.projector[0], args.projector[1], args.stripe_px, not args.no_markers)
+        pattern = pattern_from_args(args)
     from ..decode import DecodeParams
 
     params = decode_params_from_args(args) or DecodeParams()
@@ -260,4 +276,16 @@ def run(args) -> int:
         paths = write_decode_previews(args.preview, image, sm)
         print(f"wrote {len(paths)} pictures into {args.preview}")
     print(summary(sm))
+    print_hints(image, sm, params)
     return 0
+
+
+def print_hints(image, stripemap, params=None) -> None:
+    """One ``hint:`` line on stderr per warning of :func:`gbscan.diagnose.check_frame` (what to
+    change at the rig: exposure, ambient light, focus, ...); nothing for a frame that looks like a
+    good rig's.  'gbscan check IMAGE' prints all the figures."""
+    from ..diagnose import check_frame
+
+    for f in check_frame(image, stripemap, params).warnings():
+        print(f"hint: {f.text}", file=sys.stderr)
+    sys.stderr.flush()

@@ -151,12 +151,22 @@ def run(args) -> int:
     scanner = Scanner(calib, decode_params=decode_params, clean_params=clean_params)
     t_setup = time.perf_counter()
     scan = scanner.scan(image, clean=not args.no_clean, keep_stages=preview is not None)
+    warns = []
+    if scan.stripemap is not None:
+        from ..diagnose import check_frame
+
+        warns = check_frame(image, scan.stripemap, scanner.decode_params).warnings()
     if scan.n_points == 0:
         why = (scan.stripemap.stats.get("why") if scan.stripemap is not None else None) or \
             "no pixel both decoded and triangulated"
+        rig = [f.short for f in warns if f.key != "no_stripes"]
+        if rig:     # one line still: the rig check's findings join the reason
+            why += f" (rig check: {'; '.join(rig[:2])})"
         raise GBError(f"no points reconstructed from {args.image}: {why}. Check that the projector shows the "
                       "'gbscan pattern' frame, the exposure, and that the calibration belongs to this rig")
 
+    for f in warns:
+        print(f"hint: {f.text}", file=sys.stderr)
     c = scan.counts
     steps = [k for k in c if k not in ("pixels", "input", "kept")]
     print(f"{args.image}: {cam.width}x{cam.height}, {calib.n_planes} light planes")

@@ -1,0 +1,76 @@
+"""Check one camera frame of the stripe pattern: what the frame says about the rig.
+
+Decodes IMAGE and prints the figures that decide how well the stripes decode (stripe
+signal-to-noise, level and saturation, contrast, ambient light, colour balance, camera pixels per
+stripe, and where the pattern's pixels went), then one line per finding: the figure, what it
+means, what to change (exposure, ambient light, projector focus, colour settings, distance,
+stripe width).  Take a frame at the rig, run this, change one thing, run it again.
+
+--json FILE writes the same figures and findings for other tools (stable keys: see
+gbscan.diagnose.FrameCheck and Finding.key).  Exit status 0 whatever the findings; --strict: 3
+when there is a warning (scripts that gate a capture on it).
+"""
+from __future__ import annotations
+
+import sys
+
+HELP = "what a frame says about the rig: stripe SNR, exposure, contrast, ambient light, what to change"
+
+#: exit status of --strict when the frame has a warning
+WARN_EXIT = 3
+
+
+def add_arguments(p):
+    from .decode import add_decode_arguments, add_pattern_arguments
+
+    p.add_argument("image", help="camera image (colour PNG/JPEG/TIFF) of the projected stripe pattern")
+    p.add_argument("--calib", metavar="YAML", help="calibration file: the pattern (and camera size) come from it")
+    p.add_argument("--json", metavar="FILE", help="also write the figures and findings as JSON")
+    p.add_argument("--strict", action="store_true", help=f"exit with status {WARN_EXIT} when there is a warning")
+    add_pattern_arguments(p)
+    add_decode_arguments(p)
+
+
+def run(args) -> int:
+    from ..errors import GBError
+    from .decode import decode_params_from_args, pattern_from_args
+
+    if args.json and not str(args.json).endswith(".json"):
+        raise GBError(f"--json {args.json}: the file name must end in .json")
+    if args.json:
+        from pathlib import Path
+
+        parent = Path(args.json).parent
+        if not parent.is_dir():
+            raise GBError(f"--json {args.json}: folder {parent} does not exist (create it first)")
+    import json
+
+    from ..decode import DecodeParams, decode
+    from ..diagnose import check_frame, report
+    from ..io import input_warning, read_image_rgb, write_text_atomic
+
+    size = None
+    cal = None
+    if args.calib:
+        from ..calibfile import load_calibration
+
+        cal = load_calibration(args.calib, require_planes=False)
+        size = cal.camera.size
+    pattern = pattern_from_args(args, cal)
+    params = decode_params_from_args(args) or DecodeParams()
+    image = read_image_rgb(args.image, size=size, bayer=args.bayer)
+    warning = input_warning(args.image)
+    if warning:
+        print(warning, flush=True)
+    sm = decode(image, pattern, params)
+    chk = check_frame(image, sm, params)
+    print(f"{args.image}: {image.shape[1]}x{image.shape[0]}, pattern {pattern.stripe_px} px stripes"
+          f"{' with markers' if pattern.markers else ' (no markers)'}")
+    print(report(chk))
+    if args.json:
+        d = chk.to_dict()
+        d["image"] = str(args.image)
+        d["input_warning"] = warning
+        write_text_atomic(args.json, json.dumps(d, indent=1) + "\n")
+        print(f"wrote {args.json}")
+    return WARN_EXIT if args.strict and chk.warnings() else 0
