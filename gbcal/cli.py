@@ -15,10 +15,11 @@ Workflow:
   3. gbcal calibrate SESSION -o calib.yaml    the whole rig, refined together
   4. gbcal report calib.yaml -o DIR           residual plots, coverage maps, worst captures
   5. gbcal diff A.yaml B.yaml                 how far two calibrations disagree (mm)
+  6. gbcal verify NEW_SESSION --calib calib.yaml   does it still hold: scan the board, measure it
   gbcal camera IMAGE... --board 9x6 --square-mm 25 -o camera.yaml   camera alone
 """
 
-STAGES = ["patterns", "simulate-session", "camera", "calibrate", "report", "diff"]
+STAGES = ["patterns", "simulate-session", "camera", "calibrate", "report", "diff", "verify"]
 
 
 def main(argv=None) -> int:

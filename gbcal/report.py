@@ -233,3 +233,38 @@ def write_capture_previews(session_dir, run, out_dir) -> list[Path]:
         cv2.putText(img, text, (5, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 0), 1, cv2.LINE_AA)
         written.append(write_png(out / f"{cap.name}.png", img))
     return written
+
+
+def write_verify_previews(out_dir, poses, backgrounds) -> list[Path]:
+    """One picture per checked pose (``gbcal verify --preview``): the scanned board's residuals to
+    its fitted plane (mm, blue below / red above, symmetric scale) over the grey of the pose's
+    white frame, titled with the pose's flatness and scale figures.
+
+    poses : :class:`gbcal.verify.PoseCheck` list; backgrounds : matching (H, W, 3) uint8 RGB frames
+    (or None)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    paths = []
+    for pc, bg in zip(poses, backgrounds):
+        res = pc.residual_mm
+        if res is None:
+            continue
+        fig, ax = plt.subplots(figsize=(7.2, 5.4))
+        if bg is not None:
+            ax.imshow(np.asarray(bg).mean(axis=2), cmap="gray", vmin=0, vmax=255)
+        finite = res[np.isfinite(res)]
+        lim = max(0.2, 3.0 * float(np.sqrt(np.mean(finite ** 2)))) if finite.size else 0.2
+        im = ax.imshow(np.ma.masked_invalid(res), cmap="coolwarm", vmin=-lim, vmax=lim, interpolation="nearest")
+        fig.colorbar(im, ax=ax, shrink=0.8, label="distance to the board's plane (mm)")
+        f = pc.flatness
+        title = f"{pc.name}: RMS {f.rms_mm:.3f} mm, bow {f.bow_mm:.3f} mm, {f.distance_mm:.0f} mm away"
+        if pc.scale is not None:
+            title += f"\nsquares {pc.scale.measured_square_mm:.3f} mm ({100 * pc.scale.scale_error:+.2f} %)"
+        ax.set_title(title, fontsize=9)
+        ax.set_axis_off()
+        paths.append(_savefig(fig, out / f"verify_{pc.name}.png"))
+    return paths
