@@ -974,6 +974,39 @@ def _reason_stats(counts: np.ndarray) -> dict:
             "reasons": {REASONS[k]: int(counts[k]) for k in REASONS}}
 
 
+#: RegionIndex.why of the regions :func:`_retry_welds` unwraps again (markers that contradict each
+#: other: often a weld of two surfaces; ``gbscan.unwrap.MISFIT`` and the ambiguous offset)
+_RETRY_WHY = ("markers do not fit the pattern", "ambiguous offset")
+
+
+def _retry_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1=None):
+    """Unwrap again with the rows of failed regions also cut at weaker spacing jumps
+    (``UnwrapParams.retry_spacing_ratio``), when regions of at least ``retry_min_px`` pixels
+    failed with markers that contradict each other (``segments1``: step 1's segments of the
+    first unwrap, reused).  Returns the new (Unwrapped, RegionIndex) when it indexes more
+    pixels, else None."""
+    from . import unwrap as uw
+
+    p = params.unwrap
+    if p.retry_spacing_ratio <= 0 or not pattern.markers or not len(idx.why):
+        return None
+    failed = np.array([(not ok) and why in _RETRY_WHY and px >= p.retry_min_px
+                       for ok, why, px in zip(idx.indexed, idx.why, un.region_px)], bool)
+    if not failed.any():
+        return None
+    lut = np.zeros(failed.size + 1, bool)
+    lut[:-1] = failed
+    retry_px = lut[un.region]            # (region -1 -> the last entry, False)
+    un2 = uw.unwrap(cls.labels, p, locate=locate, retry_px=retry_px, segments1=segments1)
+    idx2 = uw.index_regions(cls.labels, un2.relative, un2.region, int(un2.region_px.size), pattern, p, stripe_range)
+    before = int(un.region_px[idx.indexed].sum())
+    after = int(un2.region_px[idx2.indexed].sum())
+    if after <= before:
+        return None
+    un2.stats["weld_retry_px"] = after - before
+    return un2, idx2
+
+
 def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(), *,
            keep_stages: bool = False, stripe_range: np.ndarray | None = None) -> StripeMap:
     """Decode one camera frame of the green-blue stripe pattern.
@@ -1073,11 +1106,24 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         sm.stats.update(_count_reasons(sm.mask))
         return sm
 
-    un = uw.unwrap(cls.labels, params.unwrap, locate=lambda sg: subpixel_boundaries(cls, sg))
+    located = {}
+
+    def locate(sg):
+        # the boundary positions of step 1's segments; a retry unwraps the same labels, so the
+        # same segments (kept for it) and positions
+        if located.get("segs") is not sg:
+            located["segs"], located["x"] = sg, subpixel_boundaries(cls, sg)
+        return located["x"]
+
+    un = uw.unwrap(cls.labels, params.unwrap, locate=locate)
     t4 = time.perf_counter()
     ms["unwrap"] = (t4 - t3) * 1e3
     n_reg = int(un.region_px.size)
     idx = uw.index_regions(cls.labels, un.relative, un.region, n_reg, pattern, params.unwrap, stripe_range)
+    retry = _retry_welds(cls, un, idx, pattern, params, stripe_range, locate, located.get("segs"))
+    if retry is not None:
+        un, idx = retry
+        n_reg = int(un.region_px.size)
     # stretches of rows whose own markers contradict their region's offset (a surface welded in
     # across a depth edge): reported as unindexed.  finish_pixels keeps any non-zero input reason.
     _mark_spans(cls.reason, uw.marker_conflicts(cls.labels, un, idx, pattern, params.unwrap, cls.gn, cls.bn),
@@ -1175,6 +1221,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     stats["region_why"] = {k: int(v) for k, v in zip(*np.unique(np.array(idx.why, dtype=object).astype(str),
                                                                   return_counts=True))} if n_reg else {}
     stats["boundaries"] = int(np.isfinite(jx).sum())
+    stats["weld_retry_px"] = int(un.stats.get("weld_retry_px", 0))
     # of the "rim" pixels: masked by the guard rows (rim_guard) and by the brightness-step guard
     stats["rim_guard_px"], stats["rim_step_px"] = int(n_guard), int(n_step)
     stats["ms"] = {k: round(v, 3) for k, v in ms.items()}

@@ -654,7 +654,8 @@ def test_weld_through_boundary_bits_is_not_indexed(distance_mm, seed, ss, worst_
 def test_weld_params_are_validated():
     from gbscan.unwrap import UnwrapParams
 
-    for bad in ({"min_believable_junctions": -1}, {"link_rows": 0}, {"link_reach_rows": -1}):
+    for bad in ({"min_believable_junctions": -1}, {"link_rows": 0}, {"link_reach_rows": -1},
+                {"retry_spacing_ratio": 0.9}, {"retry_spacing_ratio": 1.0}, {"retry_min_px": 0}):
         with pytest.raises(GBError):
             UnwrapParams(**bad)
 
@@ -1083,13 +1084,16 @@ def test_rows_of_a_linked_region_are_checked_against_its_markers(frame, monkeypa
     with that rule off too; ``test_weld_across_an_unlocated_boundary_is_cut`` covers the rule.
     On frame 8 the margin counted in marker events, ``index_margin_events``, indexes the wall by
     its own markers, so the regular check of the marker-indexed regions drops the sphere's rows:
-    the linked-region check is tested with the fixed margin alone.)"""
+    the linked-region check is tested with the fixed margin alone; and without the retry of
+    regions whose markers do not fit, ``UnwrapParams.retry_spacing_ratio``, which parts the two
+    surfaces before any linking on both frames.)"""
     import gbscan.unwrap as uw
 
     r = _moving_frame(650.0 + 5.0 * frame, frame)
     assert _wrong_off_edges(decode(r.image, PatternSpec()), r) == 0  # the defaults
     unguarded = DecodeParams(**dict(SIGMA2, rim_guard_px=0, rim_end_rows=0),
-                             unwrap=uw.UnwrapParams(bridge_ratio=0.0, index_margin_events=0.0))
+                             unwrap=uw.UnwrapParams(bridge_ratio=0.0, index_margin_events=0.0,
+                                                    retry_spacing_ratio=0.0))
     sm = decode(r.image, PatternSpec(), unguarded)
     assert sm.stats["regions_linked"] >= 1
     orig = uw.marker_conflicts
@@ -1320,7 +1324,8 @@ def test_weld_across_an_unlocated_boundary_is_cut(scene, sigma_px, wrong_without
     bridge is 1.32 x the spacing beside it).  ``UnwrapParams.bridge_ratio`` cuts the row there:
     0 wrong pixels, and more reported (the welds no longer split the regions' markers).  (With
     one end row, as found: the automatic end rows, 2 at 2.5 px, mask 35 of frame 5's welded
-    pixels as well.)"""
+    pixels as well; the counterfactual runs without the retry of misfit regions too,
+    ``retry_spacing_ratio``, which cuts the 760 mm weld as well.)"""
     import dataclasses
 
     from gbscan.unwrap import UnwrapParams
@@ -1332,13 +1337,45 @@ def test_weld_across_an_unlocated_boundary_is_cut(scene, sigma_px, wrong_without
         r = sim.render(sim.paper_rig(), sim.scenes.multi_object(760.0), render_pattern(PatternSpec()), cond, seed=1)
     sm = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px, rim_end_rows=1))
     sm0 = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px, rim_end_rows=1,
-                                                      unwrap=UnwrapParams(bridge_ratio=0.0)))
+                                                      unwrap=UnwrapParams(bridge_ratio=0.0, retry_spacing_ratio=0.0)))
     assert _wrong_off_edges(decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px)), r) == 0
     assert _wrong_off_edges(sm0, r) > wrong_without  # the weld is there without the rule
     assert _wrong_off_edges(sm, r) == 0
     assert sm.stats["unlocated_cuts"] > 0 and sm0.stats["unlocated_cuts"] == 0
     s, s0 = scores(sm, r), scores(sm0, r)
     assert s["coverage"] >= s0["coverage"] and s["coverage"] > 0.74, (s, s0)
+
+
+@pytest.mark.slow
+def test_regions_welded_at_a_silhouette_are_unwrapped_again_with_weaker_cuts():
+    """The multi-object scene under ambient light (0.3 of the projector's white): along the big
+    sphere's lower-right silhouette its compressed stripes meet the wall's with a spacing jump of
+    1.33 (under ``spacing_ratio``), and the sphere and the wall below it become one region whose
+    markers do not fit the pattern: all of it unindexed (45 % of the lit pixels reported).  The
+    decoder unwraps again with the failed regions' rows also cut at spacing jumps over
+    ``retry_spacing_ratio``: the two surfaces part and both are indexed, nothing wrong.  The
+    typical scene gains too (its own weld: 82.8 -> 85.6 %)."""
+    import dataclasses
+
+    from gbscan.unwrap import UnwrapParams
+
+    base = dataclasses.replace(sim.preset("typical"), supersample=1)
+    for ambient, before, after in ((0.3, 0.5, 0.8), (0.05, 0.84, 0.85)):
+        cond = dataclasses.replace(base, ambient_rgb=(ambient,) * 3)
+        r = sim.render(sim.paper_rig(), sim.scenes.multi_object(), render_pattern(PatternSpec()), cond, seed=0)
+        sm = decode(r.image, PatternSpec())
+        sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(retry_spacing_ratio=0)))
+        s, s0 = scores(sm, r), scores(sm0, r)
+        assert s0["coverage"] < before and s["coverage"] > after, (ambient, s0, s)     # measured 45 -> 84 / 83 -> 86 %
+        assert _wrong_off_edges(sm, r) == 0 and s["index_ok"] == 1.0
+        assert sm.stats["weld_retry_px"] > 2000 and sm0.stats["weld_retry_px"] == 0
+        assert sm.stats["reasons"]["unindexed"] < sm0.stats["reasons"]["unindexed"]
+    # a frame without failed regions is not unwrapped twice: the same result, bit for bit
+    r = render("plane")
+    a, b = decode(r.image, PatternSpec()), decode(r.image, PatternSpec(), DecodeParams(
+        unwrap=UnwrapParams(retry_spacing_ratio=0)))
+    assert a.stats["weld_retry_px"] == 0 and np.array_equal(a.column, b.column, equal_nan=True)
+    assert decode_module._RETRY_WHY[0] == __import__("gbscan.unwrap").unwrap.MISFIT
 
 
 @pytest.mark.parametrize("frame, sigma_px", [(1, 2.0), (7, 2.0), (1, 3.0)])
