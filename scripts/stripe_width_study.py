@@ -1,12 +1,18 @@
 """Which stripe width?  Decode simulated frames at stripe_px 4, 6, 8, 10, 12 and print a table.
 
     python scripts/stripe_width_study.py [--scenes plane,sphere] [--preset typical] [--bayer RGGB] [--jpeg 90]
+                                         [--scale-windows]
 
 For each width: coverage (reported / lit non-edge pixels), index correctness (reported non-edge
 pixels whose column is within half a stripe of the truth), column RMS (projector px) and the
 same in depth (mm, with the true light planes), on the paper's rig at 650 mm.  Narrow stripes
 give more boundaries (denser depth) but fewer camera pixels per stripe (harder classification,
 larger sub-pixel error in projector px); wide stripes the opposite.
+
+The decoder's local windows (threshold and min/max normalisation, ``--local-window-px``) are 15 px
+by default, tuned for 8 px stripes (~4 stripes in the camera); ``--scale-windows`` decodes each
+width with windows of ``15 * stripe_px / 8`` px (odd, at least 5), as a rig built for that width
+would be set up (``gbscan check`` suggests the same).
 """
 from __future__ import annotations
 
@@ -21,6 +27,8 @@ def main(argv=None) -> int:
     ap.add_argument("--widths", default="4,6,8,10,12")
     ap.add_argument("--scenes", default="plane,sphere")
     ap.add_argument("--preset", default="typical")
+    ap.add_argument("--scale-windows", action="store_true",
+                    help="decode each width with local windows of 15 * stripe_px / 8 px (default: 15 px for all)")
     from gbscan.cli_common import add_bayer_argument, add_jpeg_arguments, jpeg_fields, jpeg_label
 
     add_bayer_argument(ap)
@@ -29,7 +37,7 @@ def main(argv=None) -> int:
     import dataclasses
 
     from gbscan import sim
-    from gbscan.decode import decode
+    from gbscan.decode import DecodeParams, decode
     from gbscan.pattern import PatternSpec, render_pattern
 
     rig = sim.paper_rig()
@@ -37,7 +45,7 @@ def main(argv=None) -> int:
     cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer, **jpeg_fields(args))
     bayer = f", Bayer {args.bayer}" if args.bayer else ""
     print(f"# stripe width study, preset {args.preset}{bayer}{jpeg_label(args)}, "
-          "paper rig at 650 mm")
+          f"paper rig at 650 mm, local windows {'15 * stripe_px / 8' if args.scale_windows else '15'} px")
     print(f"{'scene':8s} {'stripe_px':>9s} {'cam px/stripe':>13s} {'coverage %':>10s} {'index ok %':>10s} "
           f"{'col RMS px':>10s} {'depth RMS mm':>12s} {'boundaries':>10s}")
     for scene_name in args.scenes.split(","):
@@ -46,7 +54,8 @@ def main(argv=None) -> int:
             spec = PatternSpec(stripe_px=w)
             print(f"rendering {scene_name} at {w} px ...", file=sys.stderr, flush=True)
             r = sim.render(rig, scene, render_pattern(spec), cond, seed=0)
-            sm = decode(r.image, spec)
+            win = max(5, int(round(15 * w / 8)) | 1) if args.scale_windows else 15
+            sm = decode(r.image, spec, DecodeParams(threshold_window_px=win, norm_window_px=win))
             truth = r.proj_xy[..., 0]
             ok = sm.valid & np.isfinite(truth) & ~r.depth_edge
             err = (sm.column - truth)[ok]
