@@ -974,11 +974,6 @@ def _reason_stats(counts: np.ndarray) -> dict:
             "reasons": {REASONS[k]: int(counts[k]) for k in REASONS}}
 
 
-#: RegionIndex.why of the regions :func:`_retry_welds` unwraps again (markers that contradict each
-#: other: often a weld of two surfaces; ``gbscan.unwrap.MISFIT`` and the ambiguous offset)
-_RETRY_WHY = ("markers do not fit the pattern", "ambiguous offset")
-
-
 def _retry_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1=None):
     """Unwrap again with the rows of failed regions also cut at weaker spacing jumps
     (``UnwrapParams.retry_spacing_ratio``), when regions of at least ``retry_min_px`` pixels
@@ -990,7 +985,8 @@ def _retry_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1=
     p = params.unwrap
     if p.retry_spacing_ratio <= 0 or not pattern.markers or not len(idx.why):
         return None
-    failed = np.array([(not ok) and why in _RETRY_WHY and px >= p.retry_min_px
+    # markers that contradict each other (often a weld of two surfaces)
+    failed = np.array([(not ok) and why in (uw.MISFIT, uw.AMBIGUOUS) and px >= p.retry_min_px
                        for ok, why, px in zip(idx.indexed, idx.why, un.region_px)], bool)
     if not failed.any():
         return None

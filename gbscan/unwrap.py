@@ -747,6 +747,8 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
 # -- absolute indexing (beyond the paper) -------------------------------------------------------
 #: RegionIndex.why of a region whose best offset mismatches more than ``max_mismatch``
 MISFIT = "markers do not fit the pattern"
+#: RegionIndex.why of a region whose runner-up offset is not clearly worse than the best
+AMBIGUOUS = "ambiguous offset"
 
 
 @dataclass
@@ -862,7 +864,7 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
             elif mismatch[k] > params.max_mismatch * evidence[k]:
                 out.why[k] = MISFIT
             elif runner_up[k] - mismatch[k] < _margin_px(params, evidence[k], seen[k]):
-                out.why[k] = "ambiguous offset"
+                out.why[k] = AMBIGUOUS
             else:
                 out.indexed[k] = True
                 out.why[k] = "ok"
@@ -925,7 +927,7 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
         elif b_mis > params.max_mismatch * ev:
             out.why[k] = MISFIT
         elif second - b_mis < _margin_px(params, ev, seen):
-            out.why[k] = "ambiguous offset"
+            out.why[k] = AMBIGUOUS
         else:
             out.indexed[k] = True
             out.why[k] = "ok"

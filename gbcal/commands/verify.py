@@ -71,9 +71,9 @@ def _poses(args):
 
 def run(args) -> int:
     import json
-    from pathlib import Path
 
     from gbscan.calibfile import load_calibration
+    from gbscan.commands.scan import _check_output, _check_preview_dir
     from gbscan.errors import GBError
     from gbscan.io import read_image_rgb, write_text_atomic
     from gbscan.scan import Scanner
@@ -81,13 +81,8 @@ def run(args) -> int:
     from ..board import detect_with_reason
     from ..verify import check_pose, findings
 
-    if args.json and not str(args.json).endswith(".json"):
-        raise GBError(f"--json {args.json}: the file name must end in .json")
-    for opt, path in (("--json", args.json), ("--preview", args.preview)):
-        if path and not Path(path).resolve().parent.is_dir():
-            raise GBError(f"{opt} {path}: folder {Path(path).resolve().parent} does not exist (create it first)")
-    if args.preview and Path(args.preview).exists() and not Path(args.preview).is_dir():
-        raise GBError(f"--preview {args.preview} exists and is not a folder")
+    json_path = _check_output(args.json, (".json",), "--json")
+    preview = _check_preview_dir(args.preview)
     board, poses = _poses(args)
     cal = load_calibration(args.calib)
     scanner = Scanner(cal)
@@ -122,16 +117,16 @@ def run(args) -> int:
         print(f"warn: {x.text}")
     if not found:
         print(f"the calibration holds: {len(checks)} pose(s) within the figures of a sound calibration")
-    if args.preview:
+    if preview is not None:
         from ..report import write_verify_previews
 
-        Path(args.preview).mkdir(exist_ok=True)
-        for p in write_verify_previews(args.preview, checks, whites):
+        preview.mkdir(exist_ok=True)
+        for p in write_verify_previews(preview, checks, whites):
             print(f"wrote {p}")
-    if args.json:
+    if json_path is not None:
         d = {"calib": str(args.calib), "board": {"cols": board.cols, "rows": board.rows, "square_mm": board.square_mm},
              "poses": [pc.to_dict() for pc in checks], "skipped": [{"pose": n, "why": w} for n, w in skipped],
              "findings": [{"key": x.key, "level": x.level, "text": x.text} for x in found]}
-        write_text_atomic(args.json, json.dumps(d, indent=1) + "\n")
-        print(f"wrote {args.json}")
+        write_text_atomic(json_path, json.dumps(d, indent=1) + "\n")
+        print(f"wrote {json_path}")
     return WARN_EXIT if args.strict and found else 0

@@ -32,17 +32,10 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from ..errors import GBError
     from .decode import decode_params_from_args, pattern_from_args
+    from .scan import _check_output
 
-    if args.json and not str(args.json).endswith(".json"):
-        raise GBError(f"--json {args.json}: the file name must end in .json")
-    if args.json:
-        from pathlib import Path
-
-        parent = Path(args.json).parent
-        if not parent.is_dir():
-            raise GBError(f"--json {args.json}: folder {parent} does not exist (create it first)")
+    json_path = _check_output(args.json, (".json",), "--json")
     import json
 
     from ..decode import DecodeParams, decode
@@ -67,10 +60,10 @@ def run(args) -> int:
     print(f"{args.image}: {image.shape[1]}x{image.shape[0]}, pattern {pattern.stripe_px} px stripes"
           f"{' with markers' if pattern.markers else ' (no markers)'}")
     print(report(chk))
-    if args.json:
+    if json_path is not None:
         d = chk.to_dict()
         d["image"] = str(args.image)
         d["input_warning"] = warning
-        write_text_atomic(args.json, json.dumps(d, indent=1) + "\n")
-        print(f"wrote {args.json}")
+        write_text_atomic(json_path, json.dumps(d, indent=1) + "\n")
+        print(f"wrote {json_path}")
     return WARN_EXIT if args.strict and chk.warnings() else 0

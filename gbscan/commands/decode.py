@@ -276,16 +276,16 @@ def run(args) -> int:
         paths = write_decode_previews(args.preview, image, sm)
         print(f"wrote {len(paths)} pictures into {args.preview}")
     print(summary(sm))
-    print_hints(image, sm, params)
+    from ..diagnose import check_frame
+
+    print_hints(check_frame(image, sm, params).warnings())
     return 0
 
 
-def print_hints(image, stripemap, params=None) -> None:
-    """One ``hint:`` line on stderr per warning of :func:`gbscan.diagnose.check_frame` (what to
-    change at the rig: exposure, ambient light, focus, ...); nothing for a frame that looks like a
-    good rig's.  'gbscan check IMAGE' prints all the figures."""
-    from ..diagnose import check_frame
-
-    for f in check_frame(image, stripemap, params).warnings():
+def print_hints(warnings) -> None:
+    """One ``hint:`` line on stderr per warning (``gbscan.diagnose.Finding``) of the rig check
+    (what to change at the rig: exposure, ambient light, focus, ...); nothing for a frame that
+    looks like a good rig's.  'gbscan check IMAGE' prints all the figures."""
+    for f in warnings:
         print(f"hint: {f.text}", file=sys.stderr)
     sys.stderr.flush()

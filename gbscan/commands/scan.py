@@ -165,8 +165,9 @@ def run(args) -> int:
         raise GBError(f"no points reconstructed from {args.image}: {why}. Check that the projector shows the "
                       "'gbscan pattern' frame, the exposure, and that the calibration belongs to this rig")
 
-    for f in warns:
-        print(f"hint: {f.text}", file=sys.stderr)
+    from .decode import print_hints
+
+    print_hints(warns)
     c = scan.counts
     steps = [k for k in c if k not in ("pixels", "input", "kept")]
     print(f"{args.image}: {cam.width}x{cam.height}, {calib.n_planes} light planes")
