@@ -80,7 +80,11 @@ JOB = "job.yaml"
 #: are not mixed in one OUTDIR).
 TEMPORAL_RULES = "temporal-2: column agreement, pixel confirmation, 3 px rim"
 COLUMNS = ("frame", "source", "status", "reason", "points", "coverage", "time_ms", "cpu_ms", "outputs",
-           "temporal_px")
+           "temporal_px", "rig")
+#: ScannerProcessor runs the rig check (gbscan.diagnose, ~10 ms) on each worker's first frame and
+#: every RIG_EVERY-th one after it; the manifest's ``rig`` column then lists the warnings' keys
+#: ("ok": none), empty for the frames not checked
+RIG_EVERY = 25
 
 
 # -- the per-frame contract ----------------------------------------------------------------------
@@ -95,7 +99,7 @@ class FrameResult:
     write_mesh : ``f(path)`` writing this frame's mesh atomically (needed for ``mesh=True``).
     state : anything the next frame of a temporal chain receives as ``prior`` (e.g. the absolute
         stripe map); None breaks the chain.
-    extra : values of further manifest columns (``temporal_px``).
+    extra : values of further manifest columns (``temporal_px``, ``rig``).
     """
 
     xyz: np.ndarray
@@ -991,15 +995,26 @@ class ScannerProcessor(Processor):
 
         scanner = Scanner(self.calibration, decode_params=self.decode_params, clean_params=self.clean_params)
         temporal = self.temporal
+        calls = [0]
 
         def process(rgb, prior=None):
             scan = scanner.scan(rgb)
             extra, state = {}, None
             if temporal:
                 scan, state, extra = _temporal_scan(scanner, scan, prior)
+            calls[0] += 1
+            warns = None
+            if scan.stripemap is not None and (calls[0] % RIG_EVERY == 1 or scan.n_points == 0):
+                from .diagnose import check_frame
+
+                warns = check_frame(rgb, scan.stripemap, scanner.decode_params).warnings()
+                extra = {**extra, "rig": ";".join(f.key for f in warns) or "ok"}
             if scan.n_points == 0:
                 why = (scan.stripemap.stats.get("why") if scan.stripemap is not None else None) or \
                     "no stripes decoded: the frame gave no range point"
+                rig = [f.short for f in warns or () if f.key != "no_stripes"]
+                if rig:
+                    why += f" (rig check: {'; '.join(rig[:2])})"
                 raise GBError(f"no points: {why}")
 
             def write_mesh(path):

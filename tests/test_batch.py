@@ -531,6 +531,40 @@ def test_cli_folder_of_raw_bayer_frames(tmp_path, calib_file):
     assert len(r.stderr.strip().splitlines()) == 1, r.stderr
 
 
+def test_cli_batch_rig_check(tmp_path, calib_file):
+    """The rig check (gbscan.diagnose) runs on each worker's first frame and every RIG_EVERY-th:
+    its warnings' keys go into the manifest's rig column, and the command sums them up in one
+    line with the frame to look at."""
+    import dataclasses
+
+    from gbscan import batch, sim
+    from gbscan.commands.batch import rig_summary
+    from gbscan.pattern import PatternSpec, render_pattern
+
+    base = dataclasses.replace(sim.preset("typical"), supersample=1)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for name, cond in (("a.png", dataclasses.replace(base, exposure=base.exposure * 0.2)), ("b.png", base)):
+        write_png(frames / name, sim.render(sim.paper_rig(), sim.scenes.plane(650.0), render_pattern(PatternSpec()),
+                                            cond, seed=0).image)
+    r = _gbscan("batch", frames, "--calib", calib_file, "-o", tmp_path / "out", "--workers", "1", "--quiet")
+    assert r.returncode == 0, r.stdout + r.stderr
+    rows = read_manifest(tmp_path / "out" / "manifest.csv")
+    assert batch.RIG_EVERY > 1 and rows[0]["rig"] == "dim" and rows[1]["rig"] == ""     # the second: not checked
+    assert f"rig check on 1 frame(s): dim 1 (what to change: gbscan check {frames / 'a.png'})" in r.stdout
+    # the summary alone: "ok" rows count as checked without findings; a video names the frame
+    m = tmp_path / "m.csv"
+    batch.write_manifest(m, {0: {"frame": 0, "source": "v.mkv#0", "status": "ok", "rig": "ok"},
+                             1: {"frame": 1, "source": "v.mkv#1", "status": "ok", "rig": ""}})
+    assert rig_summary(m) == "rig check on 1 frame(s): no findings"
+    batch.write_manifest(m, {0: {"frame": 0, "source": "v.mkv#0", "status": "ok", "rig": "noise;ambient"},
+                             25: {"frame": 25, "source": "v.mkv#25", "status": "ok", "rig": "noise"}})
+    assert rig_summary(m) == ("rig check on 2 frame(s): noise 2, ambient 1 (what to change: save frame 0 as PNG "
+                              "and run gbscan check on it)")
+    batch.write_manifest(m, {0: {"frame": 0, "source": "v.mkv#0", "status": "ok", "rig": ""}})
+    assert rig_summary(m) == ""
+
+
 def _sphere_sequence(n):
     """n frames (640x480) of the simulated rig: a sphere moving right in front of a wall + truth."""
     import dataclasses

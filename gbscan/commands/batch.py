@@ -76,6 +76,29 @@ def params_from_pairs(cls, pairs: list[str], option: str):
     return from_pairs(cls, pairs, option)
 
 
+def rig_summary(manifest, folder=None) -> str:
+    """One line from the manifest's ``rig`` column (the rig check of a frame in every
+    ``gbscan.batch.RIG_EVERY``): how many frames were checked and how many of them raised each
+    warning, and the command that says more about the first such frame (``folder``: the input
+    folder of the frame files; None: a video); "" when no frame was checked."""
+    from collections import Counter
+    from pathlib import Path
+
+    from ..batch import read_manifest
+
+    checked = [r for r in read_manifest(manifest).values() if r.get("rig")]
+    if not checked:
+        return ""
+    count = Counter(k for r in checked for k in r["rig"].split(";") if k != "ok")
+    if not count:
+        return f"rig check on {len(checked)} frame(s): no findings"
+    first = next(r for r in checked if r["rig"] != "ok")
+    how = (f"gbscan check {Path(folder) / first['source']}" if folder is not None else
+           f"save frame {first['frame']} as PNG and run gbscan check on it")
+    return (f"rig check on {len(checked)} frame(s): " + ", ".join(f"{k} {n}" for k, n in count.most_common())
+            + f" (what to change: {how})")
+
+
 def run(args) -> int:
     from ..batch import ScannerProcessor, run_batch
     from ..errors import GBError
@@ -114,5 +137,8 @@ def run(args) -> int:
         print(f"  frame {frame}: {why}")
     if len(s.failures) > 10:
         print(f"  ... {len(s.failures) - 10} more in {s.manifest}")
+    line = rig_summary(s.manifest, source.path if source.kind == "folder" else None)
+    if line:
+        print(line)
     print(f"manifest: {s.manifest}")
     return 1 if s.failed else 0
