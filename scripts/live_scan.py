@@ -4,7 +4,9 @@
 The projector shows the single-shot pattern of the calibration full-screen on its own display;
 every camera frame is decoded, triangulated and cleaned (``gbscan.scan.Scanner``, as
 ``gbscan scan``), and a live window shows the frame beside its colour-coded depth map (near red,
-far blue), with the points, the time per scan and the frame rate.
+far blue), with the points, the time per scan and the frame rate, and, every 15 frames, what
+the rig check (``gbscan check``) finds wrong with the frame: dim, saturated, noisy, ambient light,
+a weak colour, an unfocused projector, stripes too narrow for the camera.
 
     python scripts/live_scan.py --calib calib.yaml --camera 0 --screen-x 1920 -o scans/
     python scripts/live_scan.py --calib calib.yaml --simulate --frames 20 -o scans/   # simulated rig, headless
