@@ -187,6 +187,7 @@ def _run(args, devices) -> int:
         raise GBError("no pose captured; nothing written")
     log(f"session written: {args.session} ({len(out.accepted)} poses, {out.rejected} captures rejected)")
     if args.no_calibrate:
+        log(f"check a calibration on these poses: gbcal verify {args.session} --calib CALIB.yaml")
         return 0
     from gbcal.calibrate import calibrate_session, save_run, summary_lines
 
@@ -195,6 +196,8 @@ def _run(args, devices) -> int:
     for line in summary_lines(run):
         print(line)
     print(f"wrote {path} and {npz.name}")
+    print(f"later, to see whether it still holds: capture a few poses (--poses 3 --no-calibrate) and run "
+          f"gbcal verify NEW_SESSION --calib {path}")
     return 0
 
 
