@@ -559,8 +559,9 @@ def test_cli_batch_rig_check(tmp_path, calib_file):
     assert rig_summary(m) == "rig check on 1 frame(s): no findings"
     batch.write_manifest(m, {0: {"frame": 0, "source": "v.mkv#0", "status": "ok", "rig": "noise;ambient"},
                              25: {"frame": 25, "source": "v.mkv#25", "status": "ok", "rig": "noise"}})
-    assert rig_summary(m) == ("rig check on 2 frame(s): noise 2, ambient 1 (what to change: save frame 0 as PNG "
-                              "and run gbscan check on it)")
+    assert rig_summary(m, tmp_path / "v.mkv", "video") == (
+        f"rig check on 2 frame(s): noise 2, ambient 1 (what to change: gbscan check {tmp_path / 'v.mkv'} --frame 0)")
+    assert rig_summary(m).endswith("(what to change: gbscan check on frame 0)")
     batch.write_manifest(m, {0: {"frame": 0, "source": "v.mkv#0", "status": "ok", "rig": ""}})
     assert rig_summary(m) == ""
 

@@ -10,7 +10,7 @@ from gbscan import sim
 from gbscan.cli import main
 from gbscan.decode import DecodeParams, decode
 from gbscan.diagnose import FrameCheck, check_frame, findings, stripe_camera_px
-from gbscan.io import write_png
+from gbscan.io import read_image_rgb, write_png
 from gbscan.pattern import PatternSpec, render_pattern
 
 SPEC = PatternSpec()
@@ -151,6 +151,18 @@ def test_check_command_prints_figures_findings_json_and_strict_status(tmp_path, 
     assert capsys.readouterr().err.count("hint:") == 1
     assert main(["scan", str(good), "--calib", str(cal), "-o", str(tmp_path / "c.ply")]) == 0
     assert "hint:" not in capsys.readouterr().err
+    # a video or a folder of frames: --frame picks one (the frame gbscan batch names)
+    from gbscan.frames import write_video
+
+    video = write_video(tmp_path / "v.mkv", [read_image_rgb(p) for p in (good, bad)])
+    assert main(["check", str(video), "--frame", "1", "--strict"]) == 3
+    assert "warn: the stripes reach only" in capsys.readouterr().out
+    assert main(["check", str(video), "--strict"]) == 0                   # frame 0: the good one
+    capsys.readouterr()
+    assert main(["check", str(tmp_path / "v.mkv"), "--frame", "2"]) == 1
+    assert main(["check", str(good), "--frame", "0"]) == 1
+    err = capsys.readouterr().err
+    assert "--frame 2: " in err and "has frames 0 to 1" in err and "--frame applies to a video" in err
     # bad input: one line, non-zero
     assert main(["check", str(tmp_path / "missing.png")]) == 1
     assert main(["check", str(good), "--json", str(tmp_path / "no" / "c.json")]) == 1

@@ -76,11 +76,11 @@ def params_from_pairs(cls, pairs: list[str], option: str):
     return from_pairs(cls, pairs, option)
 
 
-def rig_summary(manifest, folder=None) -> str:
+def rig_summary(manifest, input_path=None, kind: str = "folder") -> str:
     """One line from the manifest's ``rig`` column (the rig check of a frame in every
     ``gbscan.batch.RIG_EVERY``): how many frames were checked and how many of them raised each
-    warning, and the command that says more about the first such frame (``folder``: the input
-    folder of the frame files; None: a video); "" when no frame was checked."""
+    warning, and the command that says more about the first such frame (``input_path``: the
+    batch's input, a folder of frames or a video (``kind``)); "" when no frame was checked."""
     from collections import Counter
     from pathlib import Path
 
@@ -93,8 +93,12 @@ def rig_summary(manifest, folder=None) -> str:
     if not count:
         return f"rig check on {len(checked)} frame(s): no findings"
     first = next(r for r in checked if r["rig"] != "ok")
-    how = (f"gbscan check {Path(folder) / first['source']}" if folder is not None else
-           f"save frame {first['frame']} as PNG and run gbscan check on it")
+    if input_path is None:
+        how = f"gbscan check on frame {first['frame']}"
+    elif kind == "folder":
+        how = f"gbscan check {Path(input_path) / first['source']}"
+    else:
+        how = f"gbscan check {input_path} --frame {first['frame']}"
     return (f"rig check on {len(checked)} frame(s): " + ", ".join(f"{k} {n}" for k, n in count.most_common())
             + f" (what to change: {how})")
 
@@ -137,7 +141,7 @@ def run(args) -> int:
         print(f"  frame {frame}: {why}")
     if len(s.failures) > 10:
         print(f"  ... {len(s.failures) - 10} more in {s.manifest}")
-    line = rig_summary(s.manifest, source.path if source.kind == "folder" else None)
+    line = rig_summary(s.manifest, source.path, source.kind)
     if line:
         print(line)
     print(f"manifest: {s.manifest}")

@@ -6,6 +6,9 @@ stripe, and where the pattern's pixels went), then one line per finding: the fig
 means, what to change (exposure, ambient light, projector focus, colour settings, distance,
 stripe width).  Take a frame at the rig, run this, change one thing, run it again.
 
+IMAGE may also be a video or a folder of frames (as 'gbscan batch' reads them): --frame N picks
+the frame (default 0), e.g. the one 'gbscan batch' names in its rig-check line.
+
 --json FILE writes the same figures and findings for other tools (stable keys: see
 gbscan.diagnose.FrameCheck and Finding.key).  Exit status 0 whatever the findings; --strict: 3
 when there is a warning (scripts that gate a capture on it).
@@ -23,12 +26,41 @@ WARN_EXIT = 3
 def add_arguments(p):
     from .decode import add_decode_arguments, add_pattern_arguments
 
-    p.add_argument("image", help="camera image (colour PNG/JPEG/TIFF) of the projected stripe pattern")
+    p.add_argument("image", help="camera image (colour PNG/JPEG/TIFF) of the projected stripe pattern, or a video "
+                                 "or folder of frames (with --frame)")
+    p.add_argument("--frame", type=int, default=None, metavar="N",
+                   help="with a video or a folder of frames: the frame to check (default 0)")
     p.add_argument("--calib", metavar="YAML", help="calibration file: the pattern (and camera size) come from it")
     p.add_argument("--json", metavar="FILE", help="also write the figures and findings as JSON")
     p.add_argument("--strict", action="store_true", help=f"exit with status {WARN_EXIT} when there is a warning")
     add_pattern_arguments(p)
     add_decode_arguments(p)
+
+
+def _read_frame(args, size):
+    """(RGB image, input warning or None) of IMAGE: an image file, or frame --frame of a video
+    or folder (:func:`gbscan.frames.open_frames`)."""
+    from pathlib import Path
+
+    from ..errors import GBError
+    from ..io import IMAGE_SUFFIXES, input_warning, read_image_rgb
+
+    path = Path(args.image)
+    if path.is_dir() or (path.is_file() and path.suffix.lower() not in IMAGE_SUFFIXES):
+        from ..frames import open_frames
+
+        n = 0 if args.frame is None else args.frame
+        with open_frames(path, args.bayer) as source:
+            if not 0 <= n < len(source):
+                raise GBError(f"--frame {n}: {path} has frames 0 to {len(source) - 1}")
+            ref = source.ref(n)
+            _, rgb = next(iter(source.frames([ref], size)))
+            if isinstance(rgb, GBError):
+                raise rgb
+            return rgb, source.input_warning()
+    if args.frame is not None:
+        raise GBError(f"--frame applies to a video or a folder of frames; {path} is one image")
+    return read_image_rgb(path, size=size, bayer=args.bayer), input_warning(path)
 
 
 def run(args) -> int:
@@ -51,8 +83,7 @@ def run(args) -> int:
         size = cal.camera.size
     pattern = pattern_from_args(args, cal)
     params = decode_params_from_args(args) or DecodeParams()
-    image = read_image_rgb(args.image, size=size, bayer=args.bayer)
-    warning = input_warning(args.image)
+    image, warning = _read_frame(args, size)
     if warning:
         print(warning, flush=True)
     sm = decode(image, pattern, params)
