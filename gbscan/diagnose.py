@@ -140,16 +140,19 @@ def stripe_camera_px(column: np.ndarray, labels: np.ndarray, stripe_px: int) -> 
         if int(ok.sum()) >= 100:
             return float(stripe_px / np.median(dc[ok]))
     lab = np.asarray(labels)
-    lengths = []
-    for row in lab:
-        change = np.flatnonzero(row[1:] != row[:-1]) + 1
-        starts = np.concatenate(([0], change))
-        ends = np.concatenate((change, [row.size]))
-        for i in range(1, len(starts) - 1):     # interior runs only: both neighbours seen
-            a, b = starts[i], ends[i]
-            if row[a] in (1, 2) and row[a - 1] in (1, 2) and row[b] in (1, 2):
-                lengths.append(b - a)
-    return float(np.median(lengths)) if len(lengths) >= 100 else float("nan")
+    H, W = lab.shape
+    padded = np.full((H, W + 2), 255, np.uint8)       # a sentinel at both ends of every row
+    padded[:, 1:-1] = lab
+    flat = padded.ravel()
+    starts = np.flatnonzero(flat[1:] != flat[:-1]) + 1
+    a, b = starts[:-1], starts[1:]                    # run [a, b); the sentinels end the rows' runs
+
+    def coloured(x):
+        return (x == 1) | (x == 2)
+
+    # interior runs only: both neighbours green or blue (so a row's first and last runs never count)
+    lengths = (b - a)[coloured(flat[a]) & coloured(flat[a - 1]) & coloured(flat[b])]
+    return float(np.median(lengths)) if lengths.size >= 100 else float("nan")
 
 
 def check_frame(image_rgb: np.ndarray, stripemap, params=None) -> FrameCheck:
