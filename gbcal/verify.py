@@ -160,8 +160,9 @@ def check_scale(corners_3d: np.ndarray, cols: int, rows: int, square_mm: float) 
     dist = dist[np.isfinite(dist)]
     if dist.size == 0:
         raise GBError("check_scale: no pair of neighbouring corners met the plane")
-    j, i = np.mgrid[0:rows, 0:cols]
-    model = np.stack([i.ravel() * square_mm, j.ravel() * square_mm, np.zeros(i.size)], axis=1)
+    from .board import Board
+
+    model = Board(cols, rows, square_mm).object_points()
     ok = np.isfinite(c).all(axis=1)
     m = float(dist.mean())
     return Scale(n_corners=int(ok.sum()), square_mm=float(square_mm), measured_square_mm=m,
@@ -181,8 +182,9 @@ def board_region(corners_px: np.ndarray, cols: int, rows: int, shape: tuple[int,
     import cv2
 
     q = np.asarray(corners_px, dtype=np.float64).reshape(-1, 2)
-    j, i = np.mgrid[0:rows, 0:cols]
-    model = np.stack([i.ravel(), j.ravel()], axis=1).astype(np.float64)
+    from .board import Board
+
+    model = Board(cols, rows, 1.0).object_points()[:, :2]     # the grid in squares
     Hm, _ = cv2.findHomography(model, q)
     if Hm is None:
         raise GBError("board_region: the corners do not map to a grid")

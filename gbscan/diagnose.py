@@ -212,7 +212,7 @@ def check_frame(image_rgb: np.ndarray, stripemap, params=None) -> FrameCheck:
         cb = (hb - lo_b[gb]) / np.maximum(hb, 1e-3)
         contrast = _median(np.minimum(cg, cb))
         top = _median(np.maximum(hg, hb))
-        ambient = _median(lut[img[..., 0]][gb]) / top if top > 0 else nan
+        ambient = _median(lut[img[..., 0][gb]]) / top if top > 0 else nan
         mg = _median(hg)
         bg = _median(hb) / mg if mg > 0 else nan
     sat = float((mask == SATURATED).sum()) / n_area if n_area else 0.0
