@@ -48,6 +48,37 @@ def add_bayer_argument(p) -> None:
                         "OpenCV; default: full RGB per pixel, like the paper's 3-CCD camera")
 
 
+#: the simulated paper rig's default camera-projector baseline (``gbscan.rig.paper_rig``)
+DEFAULT_BASELINE_MM = 200.0
+
+
+def add_baseline_argument(p) -> None:
+    """``--baseline-mm B`` of the simulators and the study scripts: the simulated paper rig with its
+    projector ``B`` mm right of the camera (still toed in to 650 mm); see :func:`rig_from_args`."""
+    p.add_argument("--baseline-mm", type=float, default=DEFAULT_BASELINE_MM,
+                   help="camera-projector baseline of the simulated rig in mm (default 200; the projector stays "
+                        "toed in to 650 mm): less baseline, less grazing light and shadow, more depth noise.  "
+                        "Plan a rig: 'gbcal simulate-session --baseline-mm B', 'gbcal calibrate', then scan "
+                        "'gbscan simulate --baseline-mm B' frames with that calibration")
+
+
+def rig_from_args(args):
+    """The simulated paper rig of ``--baseline-mm``; GBError naming the option for a baseline that is
+    not a positive length."""
+    from .errors import GBError
+    from .rig import paper_rig
+
+    b = args.baseline_mm
+    if not (b > 0 and b < float("inf")):
+        raise GBError(f"--baseline-mm must be a positive length in mm (the projector right of the camera), got {b}")
+    return paper_rig(baseline_mm=b)
+
+
+def baseline_label(args) -> str:
+    """", baseline B mm" for a rig other than the default one (progress lines, headers), else ""."""
+    return "" if args.baseline_mm == DEFAULT_BASELINE_MM else f", baseline {args.baseline_mm:g} mm"
+
+
 def add_jpeg_arguments(p) -> None:
     """``--jpeg QUALITY`` and ``--jpeg-sampling`` of the simulators and the study scripts: frames
     stored as JPEG (``gbscan.sim.Conditions.jpeg_quality`` / ``jpeg_sampling``); default lossless."""

@@ -43,14 +43,15 @@ BINS_DEG = (0, 40, 60, 70, 75, 80, 90)
 
 
 def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", decode_params=None,
-          yaw_deg: float | None = None, depth_range=None, jpeg: dict | None = None) -> dict:
+          yaw_deg: float | None = None, depth_range=None, jpeg: dict | None = None,
+          baseline_mm: float = 200.0) -> dict:
     from gbscan import sim
     from gbscan.calibfile import calibration_from_rig
     from gbscan.decode import REASONS
     from gbscan.pattern import PatternSpec, render_pattern
     from gbscan.scan import Scanner
 
-    rig = sim.paper_rig()
+    rig = sim.paper_rig(baseline_mm=baseline_mm)
     spec = PatternSpec()
     import dataclasses
 
@@ -157,8 +158,10 @@ def main(argv=None) -> int:
     ap.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
                     help="a gbscan.decode.DecodeParams field other than the default (repeatable), "
                          "e.g. extrapolate_fit=0")
-    from gbscan.cli_common import add_bayer_argument, add_jpeg_arguments, jpeg_fields, jpeg_label
+    from gbscan.cli_common import (add_baseline_argument, add_bayer_argument, add_jpeg_arguments, jpeg_fields,
+                                   jpeg_label, rig_from_args)
 
+    add_baseline_argument(ap)
     add_bayer_argument(ap)
     add_jpeg_arguments(ap)
     args = ap.parse_args(argv)
@@ -195,13 +198,17 @@ def main(argv=None) -> int:
     if args.depth_range is not None:
         dec += f", depth range {args.depth_range[0]:g}-{args.depth_range[1]:g} mm"
     yaw = "" if args.yaw_deg is None else f", yaw {args.yaw_deg:g} deg"
-    print(f"# coverage study, paper rig, preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}"
+    try:
+        rig_from_args(args)
+    except GBError as e:
+        ap.error(str(e))
+    print(f"# coverage study, paper rig (baseline {args.baseline_mm:g} mm), preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}"
           f"{jpeg_label(args)}{yaw}, "
           f"{dec}, default cleaning")
     for name in names:
         for seed in seeds:
             res = study(name, seed, args.preset, out, args.bayer, decode_params, args.yaw_deg, args.depth_range,
-                        jpeg_fields(args))
+                        jpeg_fields(args), args.baseline_mm)
             if "picture" in res:
                 print(f"   wrote {res['picture']}")
     return 0

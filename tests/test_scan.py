@@ -666,10 +666,11 @@ def test_coverage_study_script_options(capsys):
     spec.loader.exec_module(mod)
     for argv, msg in ((["--scenes", "sphere", "--yaw-deg", "10"], "takes no yaw"),
                       (["--scenes", "sphere", "--decode-param", "bogus=1"], "--decode-param"),
-                      (["--scenes", "sphere", "--decode-param", "extrapolate_fit=2"], "extrapolate_fit")):
+                      (["--scenes", "sphere", "--decode-param", "extrapolate_fit=2"], "extrapolate_fit"),
+                      (["--scenes", "sphere", "--baseline-mm", "0"], "--baseline-mm")):
         with pytest.raises(SystemExit) as e:
             mod.main(argv)
         assert e.value.code == 2 and msg in capsys.readouterr().err
-    assert mod.main(["--scenes", "plane", "--decode-param", "extrapolate_fit=0"]) == 0
+    assert mod.main(["--scenes", "plane", "--decode-param", "extrapolate_fit=0", "--baseline-mm", "150"]) == 0
     out = capsys.readouterr().out
-    assert "decoder extrapolate_fit=0" in out and "## plane, seed 0: kept" in out
+    assert "decoder extrapolate_fit=0" in out and "## plane, seed 0: kept" in out and "(baseline 150 mm)" in out

@@ -179,3 +179,49 @@ def test_cli_simulators_take_a_bayer_camera(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         main(["simulate", "step", "-o", str(paths[0]), "--bayer", "RGB"])
     assert e.value.code == 2
+
+
+def test_cli_simulators_take_a_baseline(tmp_path, capsys):
+    """--baseline-mm puts the simulated projector that far right of the camera (toed in to 650 mm as
+    the default rig): a session records that rig in its truth, and a frame rendered at that baseline
+    scans right with that rig's calibration and far off with the default one (plan a rig on the
+    command line).  Non-positive baselines: one line, exit 1."""
+    from gbcal.cli import main as gbcal_main
+    from gbscan.calibfile import calibration_from_rig, save_calibration
+    from gbscan.cli import main
+
+    out = tmp_path / "sess"
+    assert gbcal_main(["simulate-session", str(out), "--poses", "1", "--preset", "clean", "--baseline-mm", "150",
+                       "--quiet"]) == 0
+    assert "baseline 150 mm" in capsys.readouterr().out
+    rig150 = sim.paper_rig(baseline_mm=150.0)
+    truth = load_truth(out)["rig"]
+    np.testing.assert_allclose(truth.t_cam_proj, [150.0, 0.0, 0.0])
+    np.testing.assert_allclose(truth.R_cam_proj, rig150.R_cam_proj, atol=1e-12)
+    assert not np.allclose(rig150.R_cam_proj, sim.paper_rig().R_cam_proj)   # toed in from another place
+
+    png, t = tmp_path / "sphere.png", tmp_path / "t.npz"
+    assert main(["simulate", "sphere", "-o", str(png), "--truth", str(t), "--preset", "clean",
+                 "--baseline-mm", "150"]) == 0
+    assert "baseline 150 mm" in capsys.readouterr().out
+    true_z = np.load(t)["point"][..., 2]
+    med = {}
+    for name, rig in (("150", rig150), ("200", sim.paper_rig())):
+        cal = save_calibration(tmp_path / f"c{name}.yaml", calibration_from_rig(rig, SPEC))
+        xyz = tmp_path / f"xyz{name}.npy"
+        assert main(["scan", str(png), "--calib", str(cal), "-o", str(tmp_path / f"c{name}.ply"),
+                     "--xyz", str(xyz)]) == 0
+        z = np.load(xyz)[..., 2]
+        ok = np.isfinite(z) & np.isfinite(true_z)
+        assert ok.sum() > 20000
+        med[name] = float(np.median(np.abs(z[ok] - true_z[ok])))
+    assert med["150"] < 0.25 and med["200"] > 20.0, med   # measured 0.10 and 29 mm
+    capsys.readouterr()
+    for bad in ("0", "-100", "nan"):
+        assert main(["simulate", "plane", "-o", str(tmp_path / "x.png"), "--baseline-mm", bad]) == 1
+        assert "--baseline-mm" in capsys.readouterr().err
+        assert gbcal_main(["simulate-session", str(tmp_path / "y"), "--baseline-mm", bad, "--quiet"]) == 1
+        assert "--baseline-mm" in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists() and not (tmp_path / "y").exists()
+    with pytest.raises(GBError, match="baseline_mm"):
+        sim.paper_rig(baseline_mm=float("inf"))
