@@ -203,6 +203,19 @@ class DecodeParams:
         points unchanged.  1.6 removed the same wrong pixels and 9 more edge ones, for 0.7-0.8
         points of the head.  Cost 0.3 ms a 640x480 frame
         (0.8 ms on the multi-object scene: one test per column stretch end).
+    resample : decode the frame shrunk by this factor (the linear mean over each pixel's area, as a
+        camera with larger pixels sees it; ``cv2.INTER_AREA``) and expand the result back to every
+        pixel (:func:`decode`).  0, the default: frames whose stripes span more than
+        ``RESAMPLE_ABOVE_PX`` camera px (:func:`frame_stripe_px`, from the colour runs) are shrunk
+        to about ``RESAMPLE_TO_PX`` per stripe (in steps of ``RESAMPLE_STEP``); 1: never; above 1:
+        that factor.  The decoder's pixel-sized
+        rules (windows, gaps, guards, the spacing tests) are tuned and validated at the paper's
+        3.5-4 px per stripe; a camera with more pixels over the same field of view sees wider
+        stripes, and there they fail: the paper rig with a 1280x960 camera (7.5 px per stripe)
+        reports sphere / head / multi-object 80 / 90 / 67 % of the lit non-edge pixels with 3 / 17
+        / 97 of them on a wrong stripe, with a 1920x1440 camera (11 px) 24 / 44 / 7 % with 0 / 0 /
+        9383 wrong (``scripts/resample_study.py``; see README for the resampled figures).  Paper-rig
+        frames (3.6-4.1 px by the estimate) are never resampled.
     """
 
     blur_sigma_along_px: float | None = None
@@ -234,6 +247,7 @@ class DecodeParams:
     rim_end_rows: int | None = None
     rim_guard_no_boundary: bool = True
     step_guard_ratio: float = 1.9
+    resample: float = 0.0
 
     def __post_init__(self):
         def bad(name, why):
@@ -279,6 +293,9 @@ class DecodeParams:
             bad("rim_bias_px/rim_end_px", "must be >= 0 (0 disables the rule)")
         if not isinstance(self.rim_guard_no_boundary, bool):
             bad("rim_guard_no_boundary", f"must be True or False, got {self.rim_guard_no_boundary!r}")
+        rs = self.resample
+        if isinstance(rs, bool) or not isinstance(rs, (int, float)) or not (rs == 0 or 1 <= rs <= MAX_RESAMPLE):
+            bad("resample", f"must be 0 (automatic), 1 (never) or a shrink factor in (1, {MAX_RESAMPLE}], got {rs!r}")
         for name in ("rim_guard_px", "rim_end_rows"):
             v = getattr(self, name)
             if v is None:
@@ -394,6 +411,28 @@ def linearize(image_rgb: np.ndarray, camera_gamma: float = 2.2) -> tuple[np.ndar
 # -- step 1: motion blurring --------------------------------------------------------------------
 #: :func:`auto_blur_sigma` samples every SNR_STEP[1]-th pixel of every SNR_STEP[0]-th row
 SNR_STEP = (8, 2)
+#: automatic resampling (``DecodeParams.resample = 0``): a frame whose stripes span more than
+#: ``RESAMPLE_ABOVE_PX`` camera px (at least ``RESAMPLE_MIN_RUNS`` colour runs measured) is shrunk
+#: to about ``RESAMPLE_TO_PX`` px per stripe, by at most ``MAX_RESAMPLE`` and to at least
+#: ``RESAMPLE_MIN_SIDE_PX`` a side.  The paper rig's frames read 3.5-4.6 px (its 48-frame sweep),
+#: with 10 px stripes 4.3-4.8 (validated as they are: README "Stripe width"); from twice the
+#: paper camera's pixels on, frames decoded as they are put pixels on wrong stripes and resampled
+#: none; in between (1.5 x: 5.4-5.8 px) both have a few (``scripts/resample_study.py``)
+RESAMPLE_ABOVE_PX = 5.0
+RESAMPLE_TO_PX = 3.75
+#: the automatic factor is rounded to this step (frames of one sequence get the same factor unless
+#: their stripes really change: which regions the markers index can change with it)
+RESAMPLE_STEP = 0.25
+#: frame_stripe_px: the colour threshold on the balanced (g - b) / (g + b) and the quantile of the
+#: run lengths.  On the 48 frames of scripts/sweep_decode.py (3.5-4.6 px per stripe by the truth)
+#: 0.84-1.06 x the truth's median, at most 4.63 px (a tilted plane: 4.56); a median at 0.2 reads the
+#: hard preset's noisy multi-object frames 1.5 x too wide (weak stripes merge), the markers' G C G
+#: runs lift the median (1.09 x on a 1920x1440 frame, 1.02 x at 0.4)
+RUN_LEVEL = 0.1
+RUN_QUANTILE = 0.4
+RESAMPLE_MIN_RUNS = 200
+MAX_RESAMPLE = 8.0
+RESAMPLE_MIN_SIDE_PX = 32
 #: the sigma used when a frame has too few lit samples to measure its SNR
 FALLBACK_SIGMA_PX = 2.0
 
@@ -424,6 +463,104 @@ def auto_blur_sigma(image_rgb: np.ndarray, params: DecodeParams = DecodeParams()
     snr = float(mod) / max(float(noise), 0.05)
     sigma = min(max(params.blur_auto_gain_px / snr, params.blur_auto_min_px), params.blur_auto_max_px)
     return round(4.0 * sigma) / 4.0, snr
+
+
+def frame_stripe_px(image_rgb: np.ndarray, params: DecodeParams = DecodeParams()) -> tuple[float, int]:
+    """Camera pixels per stripe of a frame and the colour runs measured (0.0, 0: none), from the
+    colour runs of ~120 rows (:func:`gbscan.kernels.stripe_run_px`: green/blue by the sign of the
+    balanced ``g - b`` with hysteresis, the ``RUN_QUANTILE`` of the runs between two colour
+    changes).  No
+    decoding: it chooses the decoder's resampling (``DecodeParams.resample``).  ~0.3 ms at 640x480, ~2 ms at 1920x1440."""
+    from . import kernels
+
+    img = np.ascontiguousarray(image_rgb)
+    step = max(1, img.shape[0] // 120)
+    px, n = kernels.stripe_run_px(img, gamma_lut(params.camera_gamma), step, RUN_LEVEL,
+                                  float(max(4.0 * params.dark_level, 1.0)), 255, RUN_QUANTILE)
+    return float(px), int(n)
+
+
+def choose_resample(image_rgb: np.ndarray, params: DecodeParams = DecodeParams()) -> tuple[float, float]:
+    """The factor :func:`decode` shrinks this frame by (1.0: none) and the frame's camera px per
+    stripe (NaN when not measured: a fixed ``params.resample``, or too few colour runs)."""
+    if params.resample != 0:
+        return float(params.resample), float("nan")
+    px, n = frame_stripe_px(image_rgb, params)
+    if n < RESAMPLE_MIN_RUNS or not px > RESAMPLE_ABOVE_PX:
+        return 1.0, (px if n >= RESAMPLE_MIN_RUNS else float("nan"))
+    f = max(round(px / RESAMPLE_TO_PX / RESAMPLE_STEP) * RESAMPLE_STEP, 1.0 + RESAMPLE_STEP)
+    f = min(f, MAX_RESAMPLE, min(image_rgb.shape[:2]) / RESAMPLE_MIN_SIDE_PX)
+    return max(f, 1.0), px
+
+
+@functools.lru_cache(maxsize=8)
+def _encode_table(camera_gamma: float) -> np.ndarray:
+    # (65536,) uint8: the encoded value of linear 255 i / 65535 (the inverse of gamma_lut)
+    return np.round(255.0 * (np.arange(65536) / 65535.0) ** (1.0 / float(camera_gamma))).astype(np.uint8)
+
+
+def resample_size(shape, factor: float) -> tuple[int, int]:
+    """(h, w) of an (H, W) frame shrunk by ``factor`` (each side rounded, at least 8)."""
+    H, W = int(shape[0]), int(shape[1])
+    return max(8, int(round(H / factor))), max(8, int(round(W / factor)))
+
+
+def shrink_frame(image_rgb: np.ndarray, factor: float, camera_gamma: float = 2.2, red: bool = True) -> np.ndarray:
+    """The RGB frame shrunk by ``factor`` (:func:`resample_size`) in linear light: the mean of the
+    linearised values over each output pixel's area (``cv2.INTER_AREA``), encoded again with
+    ``camera_gamma`` -- what a camera with pixels ``factor`` times larger would record.
+    ``red=False`` leaves the red channel 0 (the decoder reads green and blue only)."""
+    import cv2
+
+    from . import kernels
+
+    img = validate_image(image_rgb)
+    if not 1.0 <= float(factor) <= MAX_RESAMPLE:
+        raise GBError(f"shrink_frame: factor must be in [1, {MAX_RESAMPLE:g}], got {factor}")
+    h, w = resample_size(img.shape, factor)
+    lin = kernels.linear_rgb(img, gamma_lut(camera_gamma), 0 if red else 1)
+    small = cv2.resize(lin, (w, h), interpolation=cv2.INTER_AREA).reshape(h, w, lin.shape[2])
+    return kernels.encode_rgb(np.ascontiguousarray(small, dtype=np.float32), _encode_table(float(camera_gamma)))
+
+
+def _shrink_range(stripe_range: np.ndarray, h: int, w: int) -> np.ndarray:
+    # the working volume's stripe bounds at the shrunk frame's pixels: the loosest bounds of the
+    # full pixels nearest to each (NaN: none); bounds vary slowly, a one-pixel shift is harmless
+    H, W = stripe_range.shape[1:]
+    ys = np.minimum(((np.arange(h) + 0.5) * H / h).astype(np.int64), H - 1)
+    xs = np.minimum(((np.arange(w) + 0.5) * W / w).astype(np.int64), W - 1)
+    return np.ascontiguousarray(stripe_range[:, ys][:, :, xs], dtype=np.float32)
+
+
+def _decode_resampled(img, factor: float, stripe_px_frame: float, pattern: PatternSpec, params: DecodeParams,
+                      keep_stages: bool, stripe_range) -> "StripeMap":
+    # decode() of the frame shrunk by ``factor``, expanded back to every pixel (DecodeParams.resample)
+    from . import kernels
+
+    t0 = time.perf_counter()
+    small = shrink_frame(img, factor, params.camera_gamma, red=False)
+    h, w = small.shape[:2]
+    sr = None if stripe_range is None else _shrink_range(stripe_range, h, w)
+    t1 = time.perf_counter()
+    sm = decode(small, pattern, dataclasses.replace(params, resample=1.0), keep_stages=keep_stages, stripe_range=sr)
+    t2 = time.perf_counter()
+    H, W = img.shape[:2]
+    crel = sm.column_relative if sm.column_relative is not None else np.full((h, w), np.nan, np.float32)
+    column, stripe, conf, mask, relative, region, labels, column_rel, counts = kernels.upsample_stripes(
+        H, W, sm.column, sm.stripe, sm.confidence, sm.mask, sm.relative, sm.region, sm.labels,
+        np.ascontiguousarray(crel, dtype=np.float32), float(pattern.stripe_px), NO_BOUNDARY, RIM)
+    t3 = time.perf_counter()
+    stats = dict(sm.stats)
+    stats.update(_reason_stats(counts[:len(REASONS)]))
+    ms = dict(stats.get("ms", {}))
+    ms.update(resample=round((t1 - t0) * 1e3, 3), upsample=round((t3 - t2) * 1e3, 3),
+              total=round((t3 - t0) * 1e3, 3))
+    stats["ms"] = ms
+    stats["resample"] = round(float(factor), 3)
+    stats["decoded_size"] = [int(w), int(h)]
+    if math.isfinite(stripe_px_frame):
+        stats["stripe_camera_px"] = round(float(stripe_px_frame), 2)
+    return StripeMap(column, stripe, conf, mask, relative, region, labels, stats, pattern, sm.stages, column_rel)
 
 
 def _gauss1d(sigma: float) -> np.ndarray:
@@ -1026,6 +1163,13 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     staged path), blur (on the fast path: only the balance samples), balance, classify (on the
     fast path: linearisation, blur and classification), unwrap, index, subpixel, finish, total.
 
+    A frame whose stripes are wide in the camera (``DecodeParams.resample``: automatically over
+    ``RESAMPLE_ABOVE_PX`` camera px per stripe, e.g. a camera with more pixels than the paper's) is
+    decoded shrunk in linear light to about ``RESAMPLE_TO_PX`` px per stripe, and the result is
+    expanded back to every pixel of the frame (``kernels.upsample_stripes``); ``stats`` then
+    carries ``resample`` (the factor), ``decoded_size`` and ``ms`` ``resample`` / ``upsample``.
+    ``stats['stripe_camera_px']``: the frame's camera px per stripe read from its colour runs.
+
     Returns a :class:`StripeMap`.  Raises GBError for unusable input (grey image, bad dtype,
     NaN); an image without a usable stripe signal gives an empty StripeMap whose ``stats['why']``
     says why.
@@ -1046,6 +1190,9 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         if stripe_range.shape != (2, H, W) or stripe_range.dtype != np.float32:
             raise GBError(f"decode: stripe_range must be a (2, {H}, {W}) float32 array (low, high stripe per "
                           f"pixel), got {stripe_range.dtype} {stripe_range.shape}")
+    factor, frame_px = choose_resample(img, params)
+    if factor > 1.0:   # wide stripes in the camera: decode the frame shrunk to the validated width
+        return _decode_resampled(img, factor, frame_px, pattern, params, keep_stages, stripe_range)
     snr = None
     if params.blur_sigma_along_px is None:  # automatic: from this frame's stripe SNR
         sigma, snr = auto_blur_sigma(img, params)
@@ -1222,6 +1369,8 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     stats["rim_guard_px"], stats["rim_step_px"] = int(n_guard), int(n_step)
     stats["ms"] = {k: round(v, 3) for k, v in ms.items()}
     stats["blur_sigma_along_px"] = float(params.blur_sigma_along_px)
+    if math.isfinite(frame_px):
+        stats["stripe_camera_px"] = round(float(frame_px), 2)
     if snr is not None:
         stats["snr"] = round(float(snr), 2)
     if not pattern.markers:

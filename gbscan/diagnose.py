@@ -26,8 +26,9 @@ the unwrapping) or over its green / blue labelled pixels:
   colour balance, surface colour; the colour balancing divides it out, the noise stays);
 * ``stripe_camera_px``: camera pixels per projector stripe, from the decoded columns (median
   horizontal gradient; from the colour runs when nothing was decoded);
-* ``window_px``: the decoder's local window (``DecodeParams.norm_window_px``), checked against
-  the stripes' width;
+* ``window_px``: the decoder's local window (``DecodeParams.norm_window_px``; in frame pixels:
+  times the factor the decoder shrank a frame of wide stripes by, ``stats['resample']``), checked
+  against the stripes' width;
 * ``reported_frac`` and ``lost_frac`` (per decoder reason) of the stripe area.
 
 Thresholds (module constants) come from simulated frames of the plane, sphere, head, real face
@@ -176,6 +177,8 @@ def check_frame(image_rgb: np.ndarray, stripemap, params=None) -> FrameCheck:
     if mask.shape != img.shape[:2]:
         raise ValueError(f"check_frame: stripe map {mask.shape} and image {img.shape[:2]} differ in size")
     H, W = mask.shape
+    # the decoder's local window in this frame's pixels (a frame of wide stripes is decoded shrunk)
+    window = int(round(int(params.norm_window_px) * float(stripemap.stats.get("resample", 1.0)))) | 1
     area = (mask != DARK) & (mask != LOW_CONTRAST)
     n_area = int(area.sum())
     lab = stripemap.labels
@@ -204,7 +207,7 @@ def check_frame(image_rgb: np.ndarray, stripemap, params=None) -> FrameCheck:
         k = 2 * int(np.ceil(3 * sigma)) + 1
         g = cv2.GaussianBlur(lut[img[..., 1]], (1, k), 0, sigmaY=float(sigma))
         b = cv2.GaussianBlur(lut[img[..., 2]], (1, k), 0, sigmaY=float(sigma))
-        w = int(params.norm_window_px) | 1
+        w = window
         lo_g, hi_g = local_minmax(g, w)
         lo_b, hi_b = local_minmax(b, w)
         hg, hb = hi_g[gb], hi_b[gb]
@@ -222,7 +225,7 @@ def check_frame(image_rgb: np.ndarray, stripemap, params=None) -> FrameCheck:
         stripe_snr=snr, noise_dn=noise, modulation_dn=mod, peak_dn=peak, saturated_frac=sat,
         contrast=contrast, ambient_ratio=ambient, blue_green_ratio=bg,
         stripe_camera_px=stripe_camera_px(stripemap.column, lab, int(stripemap.pattern.stripe_px)),
-        window_px=int(params.norm_window_px) | 1)
+        window_px=window)
     chk.findings = findings(chk)
     return chk
 
@@ -289,7 +292,16 @@ def findings(c: FrameCheck) -> list:
     if np.isfinite(c.stripe_camera_px) and c.stripe_camera_px > 0:
         lo, hi, best = WINDOW_STRIPES
         n = c.window_px / c.stripe_camera_px
-        if not lo <= n <= hi:
+        if n < lo:
+            # stripes wide in the camera: the decoder shrinks such frames by itself (--resample auto,
+            # the default), which keeps its pixel-sized rules where they are validated; wider
+            # windows alone left welded strips on a wrong stripe (README "Cameras with more pixels")
+            w = max(5, int(round(best * c.stripe_camera_px)) | 1)
+            warn("windows", f"the decoder's local windows ({c.window_px} px) span {n:.1f} stripes of "
+                            f"{c.stripe_camera_px:.1f} camera px (best 2-5): decode with --resample auto (the "
+                            f"default: the frame shrunk to ~3.75 px per stripe), or else --local-window-px {w}",
+                 "windows: --resample auto")
+        elif n > hi:
             w = max(5, int(round(best * c.stripe_camera_px)) | 1)
             warn("windows", f"the decoder's local windows ({c.window_px} px) span {n:.1f} stripes of "
                             f"{c.stripe_camera_px:.1f} camera px (best 2-5): decode with --local-window-px {w}",

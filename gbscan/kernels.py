@@ -3733,3 +3733,244 @@ def _bridge_piece(j_x, j0, j1, ratio, cut):
         if not ok:
             for k in range(a, b + 1):
                 cut[k] = 1
+
+
+# -- resampling: frames whose stripes are wide in the camera ----------------------------------------
+@njit(cache=True, nogil=True, error_model="numpy")
+def stripe_run_px(img, lut, row_step, level, floor, max_run, quantile=0.5):
+    """Camera pixels per stripe of an RGB uint8 frame, from its colour runs alone (no decoding).
+
+    Every ``row_step``-th row is walked with the linear green and blue (``lut``) scaled to equal
+    means over the bright pixels (sum above ``floor``); a pixel is green where ``(g - b) / (g + b)``
+    exceeds ``level``, blue below ``-level``, and keeps the colour before it in between (cyan
+    markers, the mixed pixels of a boundary), so each run spans one stripe (three around a marker:
+    ``G C G``) and its length is counted from one colour change to the next; a pixel darker than
+    ``floor`` ends the run uncounted.  Returns ``(run length px, runs counted)``: the ``quantile``
+    of the runs of at most ``max_run`` px, each length spread over its pixel (grouped data), 0.0
+    when none.
+    """
+    H, W = img.shape[0], img.shape[1]
+    sg = 0.0
+    sb = 0.0
+    n = 0
+    for v in range(0, H, row_step):
+        for u in range(W):
+            g = lut[img[v, u, 1]]
+            b = lut[img[v, u, 2]]
+            if g + b > floor:
+                sg += g
+                sb += b
+                n += 1
+    if n == 0 or sg <= 0.0 or sb <= 0.0:
+        return 0.0, 0
+    kg = n / sg
+    kb = n / sb
+    hist = np.zeros(max_run + 1, np.int64)
+    total = 0
+    for v in range(0, H, row_step):
+        state = 0
+        start = -1
+        for u in range(W):
+            g = lut[img[v, u, 1]]
+            b = lut[img[v, u, 2]]
+            if g + b <= floor:
+                state = 0
+                start = -1
+                continue
+            g *= kg
+            b *= kb
+            d = g - b
+            cur = state
+            if d > level * (g + b):
+                cur = 1
+            elif d < -level * (g + b):
+                cur = -1
+            if cur != state:
+                if state != 0 and start >= 0:
+                    r = u - start
+                    if r <= max_run:
+                        hist[r] += 1
+                        total += 1
+                start = u if state != 0 else -1
+                state = cur
+    if total == 0:
+        return 0.0, 0
+    # the quantile of the lengths taken as spread evenly over [r - 1/2, r + 1/2) (grouped data)
+    half = quantile * total
+    acc = 0
+    for r in range(max_run + 1):
+        if acc + hist[r] >= half:
+            return r - 0.5 + (half - acc) / hist[r], total
+        acc += hist[r]
+    return float(max_run), total
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def linear_rgb(img, lut, first):
+    """(H, W, 3 - first) float32: channels ``first`` .. 2 of an RGB uint8 frame through ``lut``
+    (linear light; ``first`` 1: green and blue only, all the decoder reads)."""
+    H, W = img.shape[0], img.shape[1]
+    n = 3 - first
+    out = np.empty((H, W, n), np.float32)
+    for v in range(H):
+        for u in range(W):
+            for c in range(n):
+                out[v, u, c] = lut[img[v, u, first + c]]
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def encode_rgb(lin, enc):
+    """(H, W, 3) uint8 RGB of (H, W, n) linear values in [0, 255] (the last n channels; the others
+    0) through ``enc``, the table of the encoded value of linear ``255 i / (enc.size - 1)``."""
+    H, W, n = lin.shape
+    out = np.zeros((H, W, 3), np.uint8)
+    scale = (enc.size - 1) / 255.0
+    top = enc.size - 1
+    for v in range(H):
+        for u in range(W):
+            for c in range(n):
+                out[v, u, 3 - n + c] = enc[min(max(int(lin[v, u, c] * scale + 0.5), 0), top)]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _slopes(col, region, limit):
+    # per coarse pixel with a finite column: the column's change per pixel along the rows (gx) and
+    # across them (gy) from its neighbours on the same surface (same region, both columns finite
+    # and within ``limit``; central, else one-sided, else 0), and which of the four neighbours are
+    # on it (bits 1 right, 2 left, 4 below, 8 above).  Each pair of neighbours is tested once.
+    h, w = col.shape
+    gx = np.zeros((h, w), np.float32)
+    gy = np.zeros((h, w), np.float32)
+    nb = np.zeros((h, w), np.uint8)
+    pair = np.zeros(w, np.bool_)       # pair (j, j + 1) of the row, or (i, j) - (i + 1, j)
+    diff = np.zeros(w, np.float32)
+    for i in range(h):
+        c = col[i]
+        r = region[i]
+        for j in range(w - 1):
+            d = c[j + 1] - c[j]
+            diff[j] = d
+            pair[j] = (r[j] == r[j + 1]) & (abs(d) < limit)       # NaN: False
+        nbi = nb[i]
+        gxi = gx[i]
+        for j in range(w):
+            right = j < w - 1 and pair[j]
+            left = j > 0 and pair[j - 1]
+            nbi[j] = (1 if right else 0) | (2 if left else 0)
+            if right and left:
+                gxi[j] = 0.5 * (diff[j] + diff[j - 1])
+            elif right:
+                gxi[j] = diff[j]
+            elif left:
+                gxi[j] = diff[j - 1]
+    for i in range(h - 1):
+        c0, c1 = col[i], col[i + 1]
+        r0, r1 = region[i], region[i + 1]
+        for j in range(w):
+            d = c1[j] - c0[j]
+            if (r0[j] == r1[j]) & (abs(d) < limit):
+                nb[i, j] |= 4
+                nb[i + 1, j] |= 8
+                gy[i, j] += d        # below (halved below where both)
+                gy[i + 1, j] += d    # above
+    for i in range(h):
+        for j in range(w):
+            if nb[i, j] & 12 == 12:
+                gy[i, j] *= 0.5
+    return gx, gy, nb
+
+
+@njit(cache=True, nogil=True)
+def upsample_stripes(H, W, column, stripe, conf, mask, relative, region, labels, column_rel, stripe_px,
+                     no_boundary, edge_code, centre_tol=0.2):
+    """A decoder result on a frame resampled to (h, w) (``cv2.INTER_AREA``: the coarse pixel ``i``
+    covers the full rows ``[i H / h, (i + 1) H / h)``), back at the full frame's (H, W) pixels.
+
+    Each pixel takes the coarse pixel nearest to it and, for the columns, the first-order
+    expansion from that pixel's centre: ``c + gx dx + gy dy`` (dx, dy its offset in coarse pixels,
+    at most 1/2), the slopes from the coarse neighbours on the same surface (same region, column
+    within one stripe; central, else one-sided; along the rows one is required, else the pixel is
+    masked ``no_boundary``; across them none gives 0).  A pixel more than ``centre_tol`` coarse
+    pixels from its coarse pixel's centre towards a neighbour that is not reported on the same
+    surface is masked ``edge_code``: the coarse pixel spans a silhouette or depth edge there,
+    decoded for the surface that filled most of it, and the pixel may lie on the other (expansion
+    only between decoded centres, never past the last).  ``stripe`` is the stripe of the expanded
+    column, ``relative`` moves with it; ``column_rel`` is expanded alike where finite.  Returns
+    column, stripe, conf, mask, relative, region, labels, column_rel (H, W) and the count of each
+    mask code (16,) int64.
+    """
+    h, w = column.shape
+    limit = float(stripe_px)
+    gx, gy, nb = _slopes(column, region, limit)
+    rgx, rgy, rnb = _slopes(column_rel, region, limit)
+    col_o = np.empty((H, W), np.float32)
+    stripe_o = np.empty((H, W), np.int32)
+    conf_o = np.empty((H, W), np.float32)
+    mask_o = np.empty((H, W), np.uint8)
+    rel_o = np.empty((H, W), np.int32)
+    reg_o = np.empty((H, W), np.int32)
+    lab_o = np.empty((H, W), np.uint8)
+    crel_o = np.empty((H, W), np.float32)
+    counts4 = np.zeros((4, 16), np.int64)   # four interleaved histograms: no chain of increments
+    # the coarse column of every full column, the offset from its centre and the neighbour the
+    # offset points to (bit of _slopes; 0 near the centre)
+    js = np.empty(W, np.int64)
+    dxs = np.empty(W, np.float64)
+    xbit = np.empty(W, np.uint8)
+    fx = w / W
+    for u in range(W):
+        x = (u + 0.5) * fx - 0.5
+        j = min(max(int(np.floor(x + 0.5)), 0), w - 1)
+        js[u] = j
+        dxs[u] = x - j
+        xbit[u] = 1 if x - j > centre_tol else (2 if x - j < -centre_tol else 0)
+    fy = h / H
+    nan = np.float32(np.nan)
+    f0 = np.float32(0.0)
+    for v in range(H):
+        y = (v + 0.5) * fy - 0.5
+        i = min(max(int(np.floor(y + 0.5)), 0), h - 1)
+        dy = y - i
+        ybit = 4 if dy > centre_tol else (8 if dy < -centre_tol else 0)
+        # the coarse row's arrays (row views: one index per pixel below)
+        m_r, r_r, l_r, rel_r, s_r = mask[i], region[i], labels[i], relative[i], stripe[i]
+        c_r, gx_r, gy_r, nb_r, cf_r = column[i], gx[i], gy[i], nb[i], conf[i]
+        cr_r, rgx_r, rgy_r, rnb_r = column_rel[i], rgx[i], rgy[i], rnb[i]
+        co, so, fo, mo = col_o[v], stripe_o[v], conf_o[v], mask_o[v]
+        relo, rego, labo, cro = rel_o[v], reg_o[v], lab_o[v], crel_o[v]
+        # two passes over the row (fewer memory streams each): what the coarse pixel gives as it is,
+        # then the columns
+        for u in range(W):
+            j = js[u]
+            rego[u] = r_r[j]
+            labo[u] = l_r[j]
+            cro[u] = cr_r[j] + rgx_r[j] * dxs[u] + rgy_r[j] * dy if rnb_r[j] & 3 else nan
+        for u in range(W):
+            j = js[u]
+            m = m_r[j]
+            rel = rel_r[j]
+            x = nan
+            s = -1
+            cf = f0
+            if m == 0:
+                need = xbit[u] | ybit
+                bits = nb_r[j]
+                if bits & need != need:
+                    m = edge_code   # towards an edge of the decoded area: the pixel may lie on the other side
+                elif bits & 3 == 0:
+                    m = no_boundary
+                else:
+                    x = np.float32(c_r[j] + gx_r[j] * dxs[u] + gy_r[j] * dy)
+                    s = int(np.floor((np.float64(x) + 0.5) / stripe_px))   # the stripe of the stored column
+                    cf = cf_r[j]
+                    rel = rel + (s - s_r[j])
+            co[u] = x
+            so[u] = s
+            fo[u] = cf
+            relo[u] = rel
+            mo[u] = m
+            counts4[u & 3, m & 15] += 1
+    counts = counts4[0] + counts4[1] + counts4[2] + counts4[3]
+    return col_o, stripe_o, conf_o, mask_o, rel_o, reg_o, lab_o, crel_o, counts

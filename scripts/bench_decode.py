@@ -14,7 +14,10 @@ own buffers are not traced).  Peers on the same sizes:
   white/black midpoint, Gray -> binary by cumulative XOR) on frames made from the true columns.
 
 Threads are limited to one (``cv2.setNumThreads``, ``numba.set_num_threads``) for the
-single-core figures.  The first decode compiles/loads the numba kernels and is not timed.
+single-core figures.  The first decode compiles/loads the numba kernels and is not timed.  A
+frame whose stripes are wide in the camera (the 1280x1024 one: ~7.4 px per stripe) is decoded
+shrunk by default (``DecodeParams.resample``); the script then also times the decoder at the
+frame's own size (``--resample never``), its throughput there.
 
 Also printed: CPU milliseconds of the calling thread (less sensitive than wall time to other
 processes on the machine), minor page faults per frame (fresh output pages: on this virtual
@@ -171,7 +174,7 @@ def main(argv=None) -> int:
     import cv2
     import numba
 
-    from gbscan.decode import decode, release_workspace
+    from gbscan.decode import DecodeParams, decode, release_workspace
     from gbscan.pattern import PatternSpec
 
     cv2.setNumThreads(args.threads)
@@ -183,19 +186,27 @@ def main(argv=None) -> int:
         img = r.image
         H, W = img.shape[:2]
         log("warming up (numba kernels) ...")
-        decode(img, spec)
-        stage_runs = []
-        for _ in range(args.runs):
-            stage_runs.append(decode(img, spec).stats["ms"])
-        total, sm = median_ms(lambda: decode(img, spec), args.runs)
-        stages = {k: float(np.median([s[k] for s in stage_runs])) for k in stage_runs[0]}
-        cpu, faults = cpu_ms_and_faults(lambda: decode(img, spec), args.runs)
-        release_workspace()
-        mem = peak_mb(lambda: decode(img, spec))
-        print(f"\n## {W}x{H}: gbscan decode  total {total:.2f} ms  (target {'3' if W <= 640 else '12'} ms)  "
-              f"cpu {cpu:.2f} ms, {faults:.0f} page faults/frame, reported {sm.valid.mean() * 100:.1f}% of pixels")
-        print(f"   peak numpy memory {mem:.1f} MB = {mem * 2 ** 20 / (H * W):.0f} bytes/px (workspace included)")
-        print("   stages: " + "  ".join(f"{k} {v:.2f}" for k, v in stages.items() if k != "total"))
+        runs = [("", DecodeParams())]
+        if "resample" in decode(img, spec).stats:
+            # a frame of wide stripes: decoded shrunk (the default); the decoder at the frame's own
+            # size as well (its throughput; results with wrong pixels there, see resample_study.py)
+            runs.append((" (as it is: --resample never)", DecodeParams(resample=1.0)))
+        for label, prm in runs:
+            decode(img, spec, prm)
+            stage_runs = []
+            for _ in range(args.runs):
+                stage_runs.append(decode(img, spec, prm).stats["ms"])
+            total, sm = median_ms(lambda: decode(img, spec, prm), args.runs)
+            stages = {k: float(np.median([s[k] for s in stage_runs])) for k in stage_runs[0]}
+            cpu, faults = cpu_ms_and_faults(lambda: decode(img, spec, prm), args.runs)
+            release_workspace()
+            mem = peak_mb(lambda: decode(img, spec, prm))
+            shrunk = f", decoded shrunk by {sm.stats['resample']:g}" if "resample" in sm.stats else ""
+            print(f"\n## {W}x{H}: gbscan decode{label}  total {total:.2f} ms  (target {'3' if W <= 640 else '12'} ms)  "
+                  f"cpu {cpu:.2f} ms, {faults:.0f} page faults/frame, reported {sm.valid.mean() * 100:.1f}% of pixels"
+                  f"{shrunk}")
+            print(f"   peak numpy memory {mem:.1f} MB = {mem * 2 ** 20 / (H * W):.0f} bytes/px (workspace included)")
+            print("   stages: " + "  ".join(f"{k} {v:.2f}" for k, v in stages.items() if k != "total"))
         if args.no_peers:
             continue
         ftp = ftp_peer(img)

@@ -89,15 +89,25 @@ def test_stripe_width_in_the_camera_is_measured_and_checked():
 
 
 def test_windows_too_narrow_for_the_stripes_are_named():
+    """24 px stripes (13 camera px) decoded at the frame's own size (--resample never): the rig
+    check names the windows and says to let the decoder resample (or widen the windows); both
+    decode the plane, and the automatic decode raises no windows finding (its windows, in frame
+    pixels, are 15 x the factor)."""
     spec = PatternSpec(stripe_px=24)
-    _, sm, c = _check(PLANE, BASE, spec=spec)
+    never = DecodeParams(resample=1.0)
+    _, sm, c = _check(PLANE, BASE, spec=spec, params=never)
     found = {f.key: f for f in c.findings}
-    assert "windows" in found and "--local-window-px" in found["windows"].text
+    assert "windows" in found and "--resample auto" in found["windows"].text
+    assert "--local-window-px" in found["windows"].text
     w = int(found["windows"].text.split("--local-window-px ")[1].split()[0])
-    p = DecodeParams(threshold_window_px=w, norm_window_px=w)
+    p = DecodeParams(threshold_window_px=w, norm_window_px=w, resample=1.0)
     r, sm2, c2 = _check(PLANE, BASE, spec=spec, params=p)
     assert c2.reported_frac > c.reported_frac + 0.5                     # measured 14 % -> 98 %
     assert "windows" not in [f.key for f in c2.findings]
+    r, sm3, c3 = _check(PLANE, BASE, spec=spec)
+    assert 2.5 < sm3.stats["resample"] <= 3.75 and c3.window_px >= 37
+    assert c3.reported_frac > c.reported_frac + 0.5                     # measured 14 % -> 96 %
+    assert "windows" not in [f.key for f in c3.findings]
 
 
 def test_findings_follow_the_figures():

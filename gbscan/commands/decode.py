@@ -64,6 +64,19 @@ def blur_value(text: str):
         raise argparse.ArgumentTypeError(f"expected a sigma in camera px or 'auto', got {text!r}") from None
 
 
+def resample_value(text: str):
+    """``--resample``: ``auto`` (0), ``never`` (1) or a shrink factor above 1."""
+    import argparse
+
+    t = text.strip().lower()
+    if t in ("auto", "never"):
+        return 0.0 if t == "auto" else 1.0
+    try:
+        return float(t)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected auto, never or a shrink factor such as 2, got {text!r}") from None
+
+
 #: flag -> (DecodeParams field(s) it sets, type, metavar, help)
 DECODE_FLAGS = {
     "--blur-px": (("blur_sigma_along_px",), blur_value, "SIGMA|auto",
@@ -75,6 +88,10 @@ DECODE_FLAGS = {
     "--local-window-px": (("threshold_window_px", "norm_window_px"), int, "N",
                           "window of the local threshold and of the local min/max normalisation, camera px "
                           "(default 15; should span two stripe periods)"),
+    "--resample": (("resample",), resample_value, "auto|never|F",
+                   "decode frames whose stripes are wide in the camera (over 5 px: a camera with more pixels "
+                   "than the paper's) shrunk to ~3.75 px per stripe, the results expanded back to every pixel "
+                   "(auto, the default), never, or shrink by F"),
     "--angle-deg": (("stripe_angle_deg",), float, "DEG", "stripe direction from vertical, degrees (default 0)"),
     "--threshold": (("threshold",), str, None, "thresholding: local (default) or global"),
     "--gamma": (("camera_gamma",), float, "G", "camera encoding gamma (default 2.2; 1 = linear camera)"),
@@ -204,6 +221,11 @@ def summary(sm) -> str:
     if "blur_sigma_along_px" in st:
         text += (f"Blur along the stripes {st['blur_sigma_along_px']:g} px"
                  + (f" (automatic: stripe SNR {st['snr']:.1f}). " if "snr" in st else ". "))
+    if "resample" in st:
+        w, h = st.get("decoded_size", (0, 0))
+        px = f" ({st['stripe_camera_px']:g} camera px per stripe)" if "stripe_camera_px" in st else ""
+        text += (f"Wide stripes{px}: decoded shrunk by {st['resample']:g} to {w}x{h} and expanded back to every "
+                 "pixel. ")
     total_ms = st.get("ms", {}).get("total")
     if total_ms is not None:
         text += f"Decoded in {total_ms:.1f} ms."
