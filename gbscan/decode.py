@@ -473,7 +473,7 @@ def frame_stripe_px(image_rgb: np.ndarray, params: DecodeParams = DecodeParams()
     decoding: it chooses the decoder's resampling (``DecodeParams.resample``).  ~0.3 ms at 640x480, ~2 ms at 1920x1440."""
     from . import kernels
 
-    img = np.ascontiguousarray(image_rgb)
+    img = validate_image(image_rgb)
     step = max(1, img.shape[0] // 120)
     px, n = kernels.stripe_run_px(img, gamma_lut(params.camera_gamma), step, RUN_LEVEL,
                                   float(max(4.0 * params.dark_level, 1.0)), 255, RUN_QUANTILE)
