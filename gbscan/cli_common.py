@@ -48,35 +48,57 @@ def add_bayer_argument(p) -> None:
                         "OpenCV; default: full RGB per pixel, like the paper's 3-CCD camera")
 
 
-#: the simulated paper rig's default camera-projector baseline (``gbscan.rig.paper_rig``)
+#: the simulated paper rig's default camera-projector baseline and camera (``gbscan.rig.paper_rig``)
 DEFAULT_BASELINE_MM = 200.0
+DEFAULT_CAMERA_PX = (640, 480)
 
 
-def add_baseline_argument(p) -> None:
-    """``--baseline-mm B`` of the simulators and the study scripts: the simulated paper rig with its
-    projector ``B`` mm right of the camera (still toed in to 650 mm); see :func:`rig_from_args`."""
+def camera_size(text: str) -> tuple[int, int]:
+    """``--camera WxH``: a camera size in pixels, e.g. 1280x960."""
+    import argparse
+
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels such as 1280x960, got {text!r}") from None
+    if not (64 <= w <= 16384 and 64 <= h <= 16384):
+        raise argparse.ArgumentTypeError(f"camera size must be 64-16384 pixels a side, got {text!r}")
+    return w, h
+
+
+def add_rig_arguments(p) -> None:
+    """``--baseline-mm B`` and ``--camera WxH`` of the simulators and the study scripts: the simulated
+    paper rig with its projector ``B`` mm right of the camera (still toed in to 650 mm) and a camera
+    of W x H pixels behind the same lens; see :func:`rig_from_args`."""
     p.add_argument("--baseline-mm", type=float, default=DEFAULT_BASELINE_MM,
                    help="camera-projector baseline of the simulated rig in mm (default 200; the projector stays "
                         "toed in to 650 mm): less baseline, less grazing light and shadow, more depth noise.  "
                         "Plan a rig: 'gbcal simulate-session --baseline-mm B', 'gbcal calibrate', then scan "
                         "'gbscan simulate --baseline-mm B' frames with that calibration")
+    p.add_argument("--camera", type=camera_size, default=DEFAULT_CAMERA_PX, metavar="WxH",
+                   help="camera pixels behind the paper camera's lens (default 640x480; e.g. 1280x960: twice the "
+                        "pixels over the same field of view, stripes twice as wide in the image, which the "
+                        "decoder shrinks back: --resample)")
 
 
 def rig_from_args(args):
-    """The simulated paper rig of ``--baseline-mm``; GBError naming the option for a baseline that is
-    not a positive length."""
+    """The simulated paper rig of ``--baseline-mm`` (and ``--camera`` where the command has it);
+    GBError naming the option for a baseline that is not a positive length."""
     from .errors import GBError
     from .rig import paper_rig
 
     b = args.baseline_mm
     if not (b > 0 and b < float("inf")):
         raise GBError(f"--baseline-mm must be a positive length in mm (the projector right of the camera), got {b}")
-    return paper_rig(baseline_mm=b)
+    return paper_rig(baseline_mm=b, camera_px=tuple(getattr(args, "camera", DEFAULT_CAMERA_PX)))
 
 
-def baseline_label(args) -> str:
-    """", baseline B mm" for a rig other than the default one (progress lines, headers), else ""."""
-    return "" if args.baseline_mm == DEFAULT_BASELINE_MM else f", baseline {args.baseline_mm:g} mm"
+def rig_label(args) -> str:
+    """", baseline B mm, camera WxH" for a rig other than the default one (progress lines,
+    headers), else ""."""
+    out = "" if args.baseline_mm == DEFAULT_BASELINE_MM else f", baseline {args.baseline_mm:g} mm"
+    cam = tuple(getattr(args, "camera", DEFAULT_CAMERA_PX))
+    return out + ("" if cam == DEFAULT_CAMERA_PX else f", camera {cam[0]}x{cam[1]}")
 
 
 def add_jpeg_arguments(p) -> None:

@@ -126,7 +126,8 @@ def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)) -> np.ndar
     return np.stack([x, y, z], axis=1)
 
 
-def paper_rig(baseline_mm: float = 200.0, distance_mm: float = 650.0, *, distortion=True) -> Rig:
+def paper_rig(baseline_mm: float = 200.0, distance_mm: float = 650.0, *, distortion=True,
+              camera_px: tuple[int, int] = (640, 480)) -> Rig:
     """The paper's geometry: a 640x480 camera and a 1024x768 DLP projector.
 
     The camera (fx = fy = 800 px) sits at the origin; the projector (fx = fy = 1860 px, so one
@@ -134,14 +135,25 @@ def paper_rig(baseline_mm: float = 200.0, distance_mm: float = 650.0, *, distort
     toed in so its axis crosses the camera axis at ``distance_mm``.  A shorter baseline sees less
     grazing light and shadow (more of a curved object is decoded) at a higher depth noise, which
     grows as 1 / baseline: ``scripts/coverage_study.py --baseline-mm`` measures both.
+    ``camera_px`` (W, H): a sensor of that many pixels behind the same lens (square pixels, their
+    pitch scaled by 640 / W: fx = fy = 800 W / 640, the principal point at the centre, the same
+    distortion), e.g. (1280, 960) for twice the paper camera's pixels over its field of view;
+    stripes then span W / 640 times as many camera pixels.
     """
     if not (np.isfinite(baseline_mm) and baseline_mm > 0 and np.isfinite(distance_mm) and distance_mm > 0):
         raise GBError(f"paper_rig: baseline_mm and distance_mm must be positive lengths in mm (the projector right "
                       f"of the camera, toed in to distance_mm in front of it), got {baseline_mm}, {distance_mm}")
+    try:
+        W, H = (int(x) for x in camera_px)
+    except (TypeError, ValueError):
+        raise GBError(f"paper_rig: camera_px must be (width, height) in pixels, got {camera_px!r}") from None
+    if not (64 <= W <= 16384 and 64 <= H <= 16384) or (W, H) != tuple(camera_px):
+        raise GBError(f"paper_rig: camera_px must be whole numbers of pixels in [64, 16384], got {camera_px!r}")
+    f = 800.0 * W / 640.0
     cam = Camera(
-        640,
-        480,
-        np.array([[800.0, 0.0, 319.5], [0.0, 800.0, 239.5], [0.0, 0.0, 1.0]]),
+        W,
+        H,
+        np.array([[f, 0.0, (W - 1) / 2.0], [0.0, f, (H - 1) / 2.0], [0.0, 0.0, 1.0]]),
         np.array([-0.12, 0.09, 0.0005, -0.0003, 0.0]) if distortion else np.zeros(5),
     )
     proj = Projector(1024, 768, np.array([[1860.0, 0.0, 511.5], [0.0, 1860.0, 383.5], [0.0, 0.0, 1.0]]))

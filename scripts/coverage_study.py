@@ -44,14 +44,14 @@ BINS_DEG = (0, 40, 60, 70, 75, 80, 90)
 
 def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", decode_params=None,
           yaw_deg: float | None = None, depth_range=None, jpeg: dict | None = None,
-          baseline_mm: float = 200.0) -> dict:
+          baseline_mm: float = 200.0, camera_px: tuple[int, int] = (640, 480)) -> dict:
     from gbscan import sim
     from gbscan.calibfile import calibration_from_rig
     from gbscan.decode import REASONS
     from gbscan.pattern import PatternSpec, render_pattern
     from gbscan.scan import Scanner
 
-    rig = sim.paper_rig(baseline_mm=baseline_mm)
+    rig = sim.paper_rig(baseline_mm=baseline_mm, camera_px=camera_px)
     spec = PatternSpec()
     import dataclasses
 
@@ -158,10 +158,10 @@ def main(argv=None) -> int:
     ap.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
                     help="a gbscan.decode.DecodeParams field other than the default (repeatable), "
                          "e.g. extrapolate_fit=0")
-    from gbscan.cli_common import (add_baseline_argument, add_bayer_argument, add_jpeg_arguments, jpeg_fields,
+    from gbscan.cli_common import (add_rig_arguments, add_bayer_argument, add_jpeg_arguments, jpeg_fields,
                                    jpeg_label, rig_from_args)
 
-    add_baseline_argument(ap)
+    add_rig_arguments(ap)
     add_bayer_argument(ap)
     add_jpeg_arguments(ap)
     args = ap.parse_args(argv)
@@ -202,13 +202,13 @@ def main(argv=None) -> int:
         rig_from_args(args)
     except GBError as e:
         ap.error(str(e))
-    print(f"# coverage study, paper rig (baseline {args.baseline_mm:g} mm), preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}"
+    print(f"# coverage study, paper rig (baseline {args.baseline_mm:g} mm, camera {args.camera[0]}x{args.camera[1]}), preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}"
           f"{jpeg_label(args)}{yaw}, "
           f"{dec}, default cleaning")
     for name in names:
         for seed in seeds:
             res = study(name, seed, args.preset, out, args.bayer, decode_params, args.yaw_deg, args.depth_range,
-                        jpeg_fields(args), args.baseline_mm)
+                        jpeg_fields(args), args.baseline_mm, args.camera)
             if "picture" in res:
                 print(f"   wrote {res['picture']}")
     return 0

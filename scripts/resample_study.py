@@ -32,13 +32,8 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 def scaled_rig(scale: float):
     """The paper rig with its camera's pixel grid ``scale`` times finer (same field of view)."""
     from gbscan import sim
-    from gbscan.camera import Camera
-    from gbscan.rig import Rig
 
-    base = sim.paper_rig()
-    W, H = int(round(640 * scale)), int(round(480 * scale))
-    K = np.array([[800.0 * scale, 0.0, (W - 1) / 2], [0.0, 800.0 * scale, (H - 1) / 2], [0.0, 0.0, 1.0]])
-    return Rig(Camera(W, H, K, base.camera.dist), base.projector, base.R_cam_proj, base.t_cam_proj)
+    return sim.paper_rig(camera_px=(int(round(640 * scale)), int(round(480 * scale))))
 
 
 def main(argv=None) -> int:

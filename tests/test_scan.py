@@ -673,4 +673,4 @@ def test_coverage_study_script_options(capsys):
         assert e.value.code == 2 and msg in capsys.readouterr().err
     assert mod.main(["--scenes", "plane", "--decode-param", "extrapolate_fit=0", "--baseline-mm", "150"]) == 0
     out = capsys.readouterr().out
-    assert "decoder extrapolate_fit=0" in out and "## plane, seed 0: kept" in out and "(baseline 150 mm)" in out
+    assert "decoder extrapolate_fit=0" in out and "## plane, seed 0: kept" in out and "(baseline 150 mm, camera 640x480)" in out

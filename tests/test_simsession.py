@@ -225,3 +225,43 @@ def test_cli_simulators_take_a_baseline(tmp_path, capsys):
     assert not (tmp_path / "x.png").exists() and not (tmp_path / "y").exists()
     with pytest.raises(GBError, match="baseline_mm"):
         sim.paper_rig(baseline_mm=float("inf"))
+
+
+def test_cli_simulators_take_a_camera(tmp_path, capsys):
+    """--camera WxH puts a sensor of that many pixels behind the paper camera's lens: a session
+    records that camera, and a frame from twice the paper camera's pixels (stripes twice as wide
+    in the image) scans right with its rig's calibration, the decoder shrinking it (resample)."""
+    from gbcal.cli import main as gbcal_main
+    from gbscan.calibfile import calibration_from_rig, save_calibration
+    from gbscan.cli import main
+
+    out = tmp_path / "sess"
+    assert gbcal_main(["simulate-session", str(out), "--poses", "1", "--preset", "clean", "--camera", "800x600",
+                       "--quiet"]) == 0
+    assert "camera 800x600" in capsys.readouterr().out
+    cam = load_truth(out)["rig"].camera
+    assert (cam.width, cam.height) == (800, 600)
+    np.testing.assert_allclose(cam.K, [[1000.0, 0, 399.5], [0, 1000.0, 299.5], [0, 0, 1]])
+    assert load_session(out).camera_size == (800, 600)
+
+    png, t = tmp_path / "sphere.png", tmp_path / "t.npz"
+    assert main(["simulate", "sphere", "-o", str(png), "--truth", str(t), "--preset", "clean",
+                 "--camera", "1280x960"]) == 0
+    assert "camera 1280x960" in capsys.readouterr().out
+    rig = sim.paper_rig(camera_px=(1280, 960))
+    cal = save_calibration(tmp_path / "c.yaml", calibration_from_rig(rig, SPEC))
+    xyz = tmp_path / "xyz.npy"
+    assert main(["scan", str(png), "--calib", str(cal), "-o", str(tmp_path / "c.ply"), "--xyz", str(xyz)]) == 0
+    z = np.load(xyz)[..., 2]
+    truth = np.load(t)
+    true_z = truth["point"][..., 2]
+    ok = np.isfinite(z) & np.isfinite(true_z)
+    assert z.shape == (960, 1280) and ok.sum() > 80000
+    assert float(np.median(np.abs(z[ok] - true_z[ok]))) < 0.1
+    off_edge = ok & ~truth["depth_edge"]       # (a silhouette pixel sees the sphere and the wall)
+    assert float(np.abs(z[off_edge] - true_z[off_edge]).max()) < 3.0
+    with pytest.raises(SystemExit) as e:
+        main(["simulate", "plane", "-o", str(tmp_path / "x.png"), "--camera", "1280"])
+    assert e.value.code == 2
+    with pytest.raises(GBError, match="camera_px"):
+        sim.paper_rig(camera_px=(1280.5, 960))

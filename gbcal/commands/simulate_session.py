@@ -22,7 +22,7 @@ def _board_arg(text: str) -> tuple[int, int]:
 
 
 def add_arguments(p):
-    from gbscan.cli_common import add_baseline_argument, add_bayer_argument
+    from gbscan.cli_common import add_rig_arguments, add_bayer_argument
 
     p.add_argument("outdir", help="session folder to write (created if missing)")
     p.add_argument("--poses", type=int, default=12, help="number of board poses (default 12)")
@@ -35,7 +35,7 @@ def add_arguments(p):
     p.add_argument("--square-mm", type=float, default=20.0,
                    help="square size in mm (default 20: the board then fits the paper rig's projector frame)")
     p.add_argument("--stripe-px", type=int, default=8, help="stripe width in projector pixels (default 8)")
-    add_baseline_argument(p)
+    add_rig_arguments(p)
     p.add_argument("--no-markers", action="store_true", help="the paper's pure green/blue stripe frame")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
@@ -48,7 +48,7 @@ def run(args) -> int:
 
     from gbscan.errors import GBError
     from gbscan.pattern import PatternSpec
-    from gbscan.cli_common import baseline_label, rig_from_args
+    from gbscan.cli_common import rig_label, rig_from_args
 
     from ..simsession import write_session
 
@@ -62,7 +62,7 @@ def run(args) -> int:
     cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer)
     out = write_session(args.outdir, rig, spec, (args.board[0], args.board[1], args.square_mm), args.poses,
                         cond, args.seed, progress=not args.quiet)
-    camera = (f", Bayer {args.bayer}" if args.bayer else "") + baseline_label(args)
+    camera = (f", Bayer {args.bayer}" if args.bayer else "") + rig_label(args)
     print(f"wrote simulated session {out}: {args.poses} poses of a {args.board[0]}x{args.board[1]} board "
           f"({args.square_mm:g} mm), preset {args.preset}{camera}, seed {args.seed}, in {time.time() - t0:.0f} s; "
           f"ground truth in {out / 'truth.yaml'}")

@@ -13,7 +13,7 @@ SCENES = ["plane", "sphere", "head", "step", "multi", "board", "face"]
 
 
 def add_arguments(p):
-    from gbscan.cli_common import add_baseline_argument, add_bayer_argument, add_jpeg_arguments
+    from gbscan.cli_common import add_rig_arguments, add_bayer_argument, add_jpeg_arguments
 
     p.add_argument("scene", choices=SCENES, metavar="SCENE", help="one of " + ", ".join(SCENES))
     p.add_argument("-o", "--output", required=True, help="output PNG (camera image, RGB)")
@@ -26,7 +26,7 @@ def add_arguments(p):
                         "it (scan it with 'gbscan scan --bayer PATTERN')")
     add_jpeg_arguments(p)
     p.add_argument("--distance-mm", type=float, default=650.0, help="scene distance in mm (default 650)")
-    add_baseline_argument(p)
+    add_rig_arguments(p)
     p.add_argument("--truth", help="also write the ground truth to this .npz")
     p.add_argument("--frame", help="projector frame PNG (default: the single-shot pattern)")
     p.add_argument("--stripe-px", type=int, default=8, help="stripe width of the default pattern (default 8)")
@@ -63,7 +63,7 @@ def run(args) -> int:
 
     from gbscan import sim
     from gbscan.errors import GBError
-    from gbscan.cli_common import baseline_label, jpeg_fields, jpeg_label, rig_from_args
+    from gbscan.cli_common import rig_label, jpeg_fields, jpeg_label, rig_from_args
     from gbscan.io import read_image_rgb, write_png
     from gbscan.pattern import PatternSpec, render_pattern
 
@@ -85,7 +85,7 @@ def run(args) -> int:
     r = sim.render(rig, scene, frame, cond, seed=args.seed)
     out = write_png(args.output, r.image)
     camera = (f", Bayer {args.bayer}{' raw mosaic' if args.raw else ''}" if args.bayer else "") + jpeg_label(args)
-    msg = (f"wrote {out} ({args.scene}, preset {args.preset}{camera}{baseline_label(args)}, seed {args.seed}, "
+    msg = (f"wrote {out} ({args.scene}, preset {args.preset}{camera}{rig_label(args)}, seed {args.seed}, "
            f"{time.time() - t0:.1f} s)")
     if args.truth:
         r.save_truth(args.truth)
