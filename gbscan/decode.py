@@ -208,14 +208,15 @@ class DecodeParams:
         pixel (:func:`decode`).  0, the default: frames whose stripes span more than
         ``RESAMPLE_ABOVE_PX`` camera px (:func:`frame_stripe_px`, from the colour runs) are shrunk
         to about ``RESAMPLE_TO_PX`` per stripe (in steps of ``RESAMPLE_STEP``); 1: never; above 1:
-        that factor.  The decoder's pixel-sized
-        rules (windows, gaps, guards, the spacing tests) are tuned and validated at the paper's
-        3.5-4 px per stripe; a camera with more pixels over the same field of view sees wider
-        stripes, and there they fail: the paper rig with a 1280x960 camera (7.5 px per stripe)
-        reports sphere / head / multi-object 80 / 90 / 67 % of the lit non-edge pixels with 3 / 17
-        / 97 of them on a wrong stripe, with a 1920x1440 camera (11 px) 24 / 44 / 7 % with 0 / 0 /
-        9383 wrong (``scripts/resample_study.py``; see README for the resampled figures).  Paper-rig
-        frames (3.6-4.1 px by the estimate) are never resampled.
+        that factor.  The decoder's pixel-sized rules (windows, gaps, guards, the spacing tests)
+        are tuned and validated at the paper's 3.5-4.8 px per stripe; a camera with more pixels
+        over the same field of view sees wider stripes, and there they fail: the paper rig with a
+        1280x960 camera (7.2-7.7 px per stripe) reported sphere / head / multi-object 80 / 90 /
+        76 % of the lit non-edge pixels with 3 / 17 / 67 of them on a wrong stripe, with a
+        1920x1440 camera (11 px) 24 / 43 / 7 % with 0 / 0 / 9511 wrong; resampled, 92 / 82 / 83 %
+        and 91 / 85 / 83 % with none wrong off depth edges (``scripts/resample_study.py``, README
+        "Cameras with more pixels").  Paper-rig frames (at most 4.63 px by the estimate) and 10 px
+        stripes are never resampled.
     """
 
     blur_sigma_along_px: float | None = None
@@ -430,6 +431,10 @@ RESAMPLE_STEP = 0.25
 #: runs lift the median (1.09 x on a 1920x1440 frame, 1.02 x at 0.4)
 RUN_LEVEL = 0.1
 RUN_QUANTILE = 0.4
+#: ... over about this many rows (every ``H // RUN_ROWS``-th): on the sweep's frames at least 699
+#: runs (a face), estimates within 0.05 px of 120 rows' (0.18 on a hard-preset head), 0.11 against
+#: 0.16 ms at 640x480
+RUN_ROWS = 80
 RESAMPLE_MIN_RUNS = 200
 MAX_RESAMPLE = 8.0
 RESAMPLE_MIN_SIDE_PX = 32
@@ -467,14 +472,14 @@ def auto_blur_sigma(image_rgb: np.ndarray, params: DecodeParams = DecodeParams()
 
 def frame_stripe_px(image_rgb: np.ndarray, params: DecodeParams = DecodeParams()) -> tuple[float, int]:
     """Camera pixels per stripe of a frame and the colour runs measured (0.0, 0: none), from the
-    colour runs of ~120 rows (:func:`gbscan.kernels.stripe_run_px`: green/blue by the sign of the
+    colour runs of ``RUN_ROWS`` rows (:func:`gbscan.kernels.stripe_run_px`: green/blue by the sign of the
     balanced ``g - b`` with hysteresis, the ``RUN_QUANTILE`` of the runs between two colour
-    changes).  No
-    decoding: it chooses the decoder's resampling (``DecodeParams.resample``).  ~0.3 ms at 640x480, ~2 ms at 1920x1440."""
+    changes).  No decoding: it chooses the decoder's resampling (``DecodeParams.resample``).
+    ~0.1 ms at 640x480, ~0.6 ms at 1920x1440."""
     from . import kernels
 
     img = validate_image(image_rgb)
-    step = max(1, img.shape[0] // 120)
+    step = max(1, img.shape[0] // RUN_ROWS)
     px, n = kernels.stripe_run_px(img, gamma_lut(params.camera_gamma), step, RUN_LEVEL,
                                   float(max(4.0 * params.dark_level, 1.0)), 255, RUN_QUANTILE)
     return float(px), int(n)

@@ -3940,8 +3940,7 @@ def upsample_stripes(H, W, column, stripe, conf, mask, relative, region, labels,
         cr_r, rgx_r, rgy_r, rnb_r = column_rel[i], rgx[i], rgy[i], rnb[i]
         co, so, fo, mo = col_o[v], stripe_o[v], conf_o[v], mask_o[v]
         relo, rego, labo, cro = rel_o[v], reg_o[v], lab_o[v], crel_o[v]
-        # two passes over the row (fewer memory streams each): what the coarse pixel gives as it is,
-        # then the columns
+        # two passes over the row: what the coarse pixel gives as it is, then the columns
         for u in range(W):
             j = js[u]
             rego[u] = r_r[j]
