@@ -29,6 +29,7 @@ the unwrapping) or over its green / blue labelled pixels:
 * ``window_px``: the decoder's local window (``DecodeParams.norm_window_px``; in frame pixels:
   times the factor the decoder shrank a frame of wide stripes by, ``stats['resample']``), checked
   against the stripes' width;
+* ``resample``: the factor the decoder shrank the frame by (1: decoded as it is);
 * ``reported_frac`` and ``lost_frac`` (per decoder reason) of the stripe area.
 
 Thresholds (module constants) come from simulated frames of the plane, sphere, head, real face
@@ -108,6 +109,7 @@ class FrameCheck:
     blue_green_ratio: float
     stripe_camera_px: float
     window_px: int = 15
+    resample: float = 1.0
     findings: list = field(default_factory=list)
 
     def warnings(self) -> list:
@@ -225,7 +227,7 @@ def check_frame(image_rgb: np.ndarray, stripemap, params=None) -> FrameCheck:
         stripe_snr=snr, noise_dn=noise, modulation_dn=mod, peak_dn=peak, saturated_frac=sat,
         contrast=contrast, ambient_ratio=ambient, blue_green_ratio=bg,
         stripe_camera_px=stripe_camera_px(stripemap.column, lab, int(stripemap.pattern.stripe_px)),
-        window_px=window)
+        window_px=window, resample=float(stripemap.stats.get("resample", 1.0)))
     chk.findings = findings(chk)
     return chk
 
@@ -289,6 +291,13 @@ def findings(c: FrameCheck) -> list:
                                f"a stripe covers {c.stripe_camera_px:.1f} camera pixels: narrower stripes "
                                "('gbscan pattern --stripe-px') would put more boundaries on the surface",
                                f"stripes {c.stripe_camera_px:.0f} camera px: could be narrower"))
+    if c.resample > 1.0:
+        out.append(Finding("resampled", "info",
+                           f"stripes span {c.stripe_camera_px:.1f} camera px: the decoder shrank the frame by "
+                           f"{c.resample:g} to ~{c.stripe_camera_px / c.resample:.1f} px per stripe, the width its "
+                           "rules are validated at, and expanded the result to every pixel (a camera with more "
+                           "pixels than the stripes need; --resample never decodes the frame as it is)",
+                           f"decoded shrunk by {c.resample:g} (wide stripes)"))
     if np.isfinite(c.stripe_camera_px) and c.stripe_camera_px > 0:
         lo, hi, best = WINDOW_STRIPES
         n = c.window_px / c.stripe_camera_px

@@ -107,7 +107,10 @@ def test_windows_too_narrow_for_the_stripes_are_named():
     r, sm3, c3 = _check(PLANE, BASE, spec=spec)
     assert 2.5 < sm3.stats["resample"] <= 3.75 and c3.window_px >= 37
     assert c3.reported_frac > c.reported_frac + 0.5                     # measured 14 % -> 96 %
-    assert "windows" not in [f.key for f in c3.findings]
+    keys = [f.key for f in c3.findings]
+    assert "windows" not in keys and "resampled" in keys and c3.resample == sm3.stats["resample"]
+    assert [f.level for f in c3.findings if f.key == "resampled"] == ["info"] and not c3.warnings()
+    assert c.resample == 1.0 and "resampled" not in found
 
 
 def test_findings_follow_the_figures():
