@@ -82,7 +82,7 @@ def add_rig_arguments(p) -> None:
 
 
 def rig_from_args(args):
-    """The simulated paper rig of ``--baseline-mm`` (and ``--camera`` where the command has it);
+    """The simulated paper rig of ``--baseline-mm`` and ``--camera`` (:func:`add_rig_arguments`);
     GBError naming the option for a baseline that is not a positive length."""
     from .errors import GBError
     from .rig import paper_rig
@@ -90,14 +90,14 @@ def rig_from_args(args):
     b = args.baseline_mm
     if not (b > 0 and b < float("inf")):
         raise GBError(f"--baseline-mm must be a positive length in mm (the projector right of the camera), got {b}")
-    return paper_rig(baseline_mm=b, camera_px=tuple(getattr(args, "camera", DEFAULT_CAMERA_PX)))
+    return paper_rig(baseline_mm=b, camera_px=tuple(args.camera))
 
 
 def rig_label(args) -> str:
     """", baseline B mm, camera WxH" for a rig other than the default one (progress lines,
     headers), else ""."""
     out = "" if args.baseline_mm == DEFAULT_BASELINE_MM else f", baseline {args.baseline_mm:g} mm"
-    cam = tuple(getattr(args, "camera", DEFAULT_CAMERA_PX))
+    cam = tuple(args.camera)
     return out + ("" if cam == DEFAULT_CAMERA_PX else f", camera {cam[0]}x{cam[1]}")
 
 

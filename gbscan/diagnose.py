@@ -180,7 +180,8 @@ def check_frame(image_rgb: np.ndarray, stripemap, params=None) -> FrameCheck:
         raise ValueError(f"check_frame: stripe map {mask.shape} and image {img.shape[:2]} differ in size")
     H, W = mask.shape
     # the decoder's local window in this frame's pixels (a frame of wide stripes is decoded shrunk)
-    window = int(round(int(params.norm_window_px) * float(stripemap.stats.get("resample", 1.0)))) | 1
+    resample = float(stripemap.stats.get("resample", 1.0))
+    window = int(round(int(params.norm_window_px) * resample)) | 1
     area = (mask != DARK) & (mask != LOW_CONTRAST)
     n_area = int(area.sum())
     lab = stripemap.labels
@@ -227,7 +228,7 @@ def check_frame(image_rgb: np.ndarray, stripemap, params=None) -> FrameCheck:
         stripe_snr=snr, noise_dn=noise, modulation_dn=mod, peak_dn=peak, saturated_frac=sat,
         contrast=contrast, ambient_ratio=ambient, blue_green_ratio=bg,
         stripe_camera_px=stripe_camera_px(stripemap.column, lab, int(stripemap.pattern.stripe_px)),
-        window_px=window, resample=float(stripemap.stats.get("resample", 1.0)))
+        window_px=window, resample=resample)
     chk.findings = findings(chk)
     return chk
 
@@ -301,17 +302,16 @@ def findings(c: FrameCheck) -> list:
     if np.isfinite(c.stripe_camera_px) and c.stripe_camera_px > 0:
         lo, hi, best = WINDOW_STRIPES
         n = c.window_px / c.stripe_camera_px
+        w = max(5, int(round(best * c.stripe_camera_px)) | 1)
         if n < lo:
             # stripes wide in the camera: the decoder shrinks such frames by itself (--resample auto,
             # the default), which keeps its pixel-sized rules where they are validated; wider
             # windows alone left welded strips on a wrong stripe (README "Cameras with more pixels")
-            w = max(5, int(round(best * c.stripe_camera_px)) | 1)
             warn("windows", f"the decoder's local windows ({c.window_px} px) span {n:.1f} stripes of "
                             f"{c.stripe_camera_px:.1f} camera px (best 2-5): decode with --resample auto (the "
                             f"default: the frame shrunk to ~3.75 px per stripe), or else --local-window-px {w}",
                  "windows: --resample auto")
         elif n > hi:
-            w = max(5, int(round(best * c.stripe_camera_px)) | 1)
             warn("windows", f"the decoder's local windows ({c.window_px} px) span {n:.1f} stripes of "
                             f"{c.stripe_camera_px:.1f} camera px (best 2-5): decode with --local-window-px {w}",
                  f"windows: --local-window-px {w}")

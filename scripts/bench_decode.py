@@ -50,19 +50,12 @@ def log(msg: str) -> None:
 
 def frames(width: int, scene: str = "plane", preset: str = "typical"):
     from gbscan import sim
-    from gbscan.camera import Camera
     from gbscan.pattern import PatternSpec, render_pattern
-    from gbscan.rig import Rig
 
-    rig = sim.paper_rig()
+    # 640 -> the paper's 640x480 camera; wider: a 5:4 sensor behind the same lens (1280x1024)
+    rig = sim.paper_rig(camera_px=(640, 480) if width == 640 else (width, int(round(width * 1024 / 1280))))
     cond = sim.preset(preset)
     if width != 640:
-        s = width / 640.0
-        cam = rig.camera
-        big = Camera(width, int(round(width * 1024 / 1280)),
-                     np.array([[800 * s, 0, (width - 1) / 2], [0, 800 * s, (width * 0.8 - 1) / 2], [0, 0, 1]]),
-                     cam.dist)
-        rig = Rig(big, rig.projector, rig.R_cam_proj, rig.t_cam_proj)
         cond = replace(cond, supersample=1)
     log(f"rendering {scene} {rig.camera.width}x{rig.camera.height} ...")
     sc = sim.scenes.plane(distance_mm=650) if scene == "plane" else getattr(sim.scenes, scene)()

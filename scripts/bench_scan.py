@@ -32,18 +32,9 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 
 
 def rig_of_size(width: int, height: int):
-    from gbscan.camera import Camera
-    from gbscan.rig import Rig, paper_rig
+    from gbscan.rig import paper_rig
 
-    base = paper_rig()
-    s = width / base.camera.width
-    K = base.camera.K.copy()
-    K[0, 0] *= s
-    K[1, 1] *= s
-    K[0, 2] = (width - 1) / 2
-    K[1, 2] = (height - 1) / 2
-    cam = Camera(width, height, K, base.camera.dist)
-    return Rig(cam, base.projector, base.R_cam_proj, base.t_cam_proj)
+    return paper_rig(camera_px=(width, height))   # the same lens, a sensor of width x height pixels
 
 
 def scene_of(name: str):
