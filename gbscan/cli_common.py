@@ -122,6 +122,41 @@ def jpeg_label(args) -> str:
     return f", JPEG q{args.jpeg} {args.jpeg_sampling}" if args.jpeg else ""
 
 
+#: the colour of ``--ambient`` room light in the camera's red, green and blue (warm: tungsten or
+#: warm-white LED light, which the camera's red sees most and its blue least)
+AMBIENT_TINT_RGB = (1.0, 0.8, 0.6)
+
+
+def add_ambient_argument(p) -> None:
+    """``--ambient LEVEL`` of the simulators and the study scripts: room light on the scene, in the
+    camera's red (green, blue: 0.8, 0.6 of it, ``AMBIENT_TINT_RGB``) as a fraction of what the
+    projector's full green puts on a white surface facing it at 650 mm; default: the preset's
+    (typical 0.05 grey, hard 0.25 / 0.2 / 0.15)."""
+    p.add_argument("--ambient", type=float, default=None, metavar="LEVEL",
+                   help="room light on the scene as a fraction of the projector's light on a surface facing it "
+                        "(0-2; warm light: 1 / 0.8 / 0.6 of LEVEL in the camera's red / green / blue); default: "
+                        "the preset's (typical 0.05)")
+
+
+def ambient_fields(args) -> dict:
+    """The :class:`gbscan.sim.Conditions` field of ``--ambient`` ({} when not given); GBError for a
+    level outside 0-2."""
+    from .errors import GBError
+
+    a = getattr(args, "ambient", None)
+    if a is None:
+        return {}
+    if not 0.0 <= a <= 2.0:
+        raise GBError(f"--ambient must be 0-2 (a fraction of the projector's light), got {a}")
+    return {"ambient_rgb": tuple(round(a * t, 6) for t in AMBIENT_TINT_RGB)}
+
+
+def ambient_label(args) -> str:
+    """", ambient L" when ``--ambient`` is given, else ""."""
+    a = getattr(args, "ambient", None)
+    return "" if a is None else f", ambient {a:g}"
+
+
 def run_cli(prog: str, description: str, package: str, stages: list[str], argv=None) -> int:
     parser = _Parser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     from gbscan import __version__

@@ -22,6 +22,24 @@ NONE, GREEN, BLUE, CYAN = 0, 1, 2, 3
 
 
 @njit(cache=True, nogil=True)
+def run_starts(row, rs):
+    """Run-length encode one row of labels (W,) (W >= 1): the runs' first pixels into ``rs[0 ..
+    n-1]`` and ``rs[n] = W`` (rs: (W + 1,) int32); returns n.  Branch-free: every pixel stores its
+    position as the next run's start, and the count advances only where the label changes (noisy
+    rows cost no mispredicted branches)."""
+    W = row.size
+    rs[0] = 0
+    nr = 1
+    a = row[:W - 1]
+    b = row[1:]
+    for u in range(W - 1):
+        rs[nr] = u + 1
+        nr += np.int64(a[u] != b[u])
+    rs[nr] = W
+    return nr
+
+
+@njit(cache=True, nogil=True)
 def _merge_runs_pass(rs, re, rl, nr, gaps, limit_px):
     """One left-to-right merging pass of :func:`row_segments` over the runs ``0 .. nr-1`` of a row
     (in place; returns the new count).  ``gaps`` False (spikes): a coloured run of at most
@@ -193,17 +211,9 @@ def row_segments(labels, max_gap_px, spike_px, marker_flank_px=0, end_flank=Fals
         rr[:] = 0
         if W == 0:
             continue
-        # -- run-length encode the row
-        # (branch-free: every pixel stores its position as the next run's start, and the count
-        # advances only where the label changes; noisy rows cost no mispredicted branches)
+        # -- run-length encode the row (branch-free)
         lrow = labels[v]
-        rs[0] = 0
-        nr = 1
-        a = lrow[:W - 1]
-        b = lrow[1:]
-        for u in range(W - 1):
-            rs[nr] = u + 1
-            nr += np.int64(a[u] != b[u])
+        nr = run_starts(lrow, rs)
         for k in range(nr - 1):
             re[k] = rs[k + 1] - 1
             rl[k] = lrow[rs[k]]
@@ -1485,6 +1495,122 @@ def classify_row(g, b, d, thr, lo_g, hi_g, lo_b, hi_b, raw_g, raw_b, raw_hi, raw
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _peak_sep(gn, bn, a, b):
+    # largest |gn - bn| over pixels a .. b-1
+    peak = np.float32(0.0)
+    for x in range(a, b):
+        peak = max(peak, abs(gn[x] - bn[x]))
+    return peak
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _run_mean(x, a, b):
+    # mean of x[a:b] (float64 sum)
+    acc = 0.0
+    for i in range(a, b):
+        acc += x[i]
+    return acc / (b - a)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _swing_fails(labels, gn, bn, g, b, rs, nr, k, step, end_gap, min_swing, min_sep):
+    # run k (green or blue) against the next run inward (k + step; across a gap shorter than
+    # end_gap): False where there is no such run of the other colour that is itself no faint run
+    # (peak separation min_sep: the mixed pixels beside a marker, X Y C X, are no reference);
+    # else True where the run's own colour swings less than min_swing times the other colour
+    # does.  Swings are relative (m = (x_hi - x_lo) / (x_hi + x_lo) of the two runs' means), so no
+    # colour balance is needed.
+    j = k + step
+    if j < 0 or j >= nr:
+        return False
+    if labels[rs[j]] == NONE:
+        if rs[j + 1] - rs[j] >= end_gap:
+            return False
+        j += step
+        if j < 0 or j >= nr:
+            return False
+    lab = labels[rs[k]]
+    other = labels[rs[j]]
+    if not ((lab == GREEN and other == BLUE) or (lab == BLUE and other == GREEN)):
+        return False
+    if _peak_sep(gn, bn, rs[j], rs[j + 1]) < min_sep:
+        return False
+    gk = _run_mean(g, rs[k], rs[k + 1])
+    gj = _run_mean(g, rs[j], rs[j + 1])
+    bk = _run_mean(b, rs[k], rs[k + 1])
+    bj = _run_mean(b, rs[j], rs[j + 1])
+    if lab == GREEN:
+        own = (gk - gj) / max(gk + gj, 1e-6)
+        oth = (bj - bk) / max(bj + bk, 1e-6)
+    else:
+        own = (bk - bj) / max(bk + bj, 1e-6)
+        oth = (gj - gk) / max(gj + gk, 1e-6)
+    return oth > 0 and own < min_swing * oth
+
+
+#: faint_runs_row's swing test looks only at runs whose peak separation is below this many times
+#: ``min_sep`` (a run that separates the channels clearly is a stripe, whatever its swing)
+SWING_SEP = 2.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def faint_runs_row(labels, reason, gn, bn, g, b, min_sep, min_swing, end_gap):
+    """Peel runs that are no stripes off the ends of a row's stretches, in place (labels, reason
+    (W,) uint8; gn, bn (W,) float32 from :func:`classify_row`; g, b (W,) float32 the blurred
+    linear channels).  ``min_sep`` 0 and ``min_swing`` 0 disable the two tests.
+
+    A green or blue run at an end of its stretch -- the row's border or at least ``end_gap``
+    unlabelled pixels beyond it (a gap the unwrapping does not bridge) -- is unlabelled (labels
+    NONE, reason 3: low contrast) when
+
+    * *faint*: no pixel separates the two normalised channels by ``min_sep`` (``max |gn - bn| <
+      min_sep``; gn, bn are normalised between their local min and max, so a stripe's centre
+      reaches ``|gn - bn|`` near 1 however faint the stripes are), or
+    * *one-sided*: against the next run inward (the other colour), its own colour swings less than
+      ``min_swing`` times the other one: a green stripe is greener *and* less blue than the blue
+      stripe beside it, light without the pattern is only less blue (or only less green).
+
+    Then the run it uncovers is looked at the same way, from both ends; a one-pixel run at an end
+    (the mixed pixel of the dark and a stripe) keeps the end going.  Such runs are ambient light
+    with a colour cast, which the local threshold splits into "green" and "blue", beside stripes
+    that fade out at a projector terminator, where the local windows still see the stripes (see
+    ``DecodeParams.min_run_separation``).  Runs inside a stretch stay (they carry the row's count
+    across a dim patch); cyan runs stop the peeling (a marker lights both channels)."""
+    if min_sep <= 0 and min_swing <= 0:
+        return
+    W = labels.size
+    if W == 0:
+        return
+    rs = np.empty(W + 1, np.int32)
+    nr = run_starts(labels, rs)       # then the runs from each end of the row
+    for direction in range(2):
+        none_len = end_gap            # the row's border is an end
+        step = 1 if direction == 0 else -1
+        for i in range(nr):
+            k = i if direction == 0 else nr - 1 - i
+            a = rs[k]
+            e = rs[k + 1]
+            lab = labels[a]           # (re-read: the first direction may have unlabelled the run)
+            if lab == NONE:
+                none_len += e - a
+                continue
+            if (lab == GREEN or lab == BLUE) and none_len >= end_gap:
+                peak = _peak_sep(gn, bn, a, e)
+                if (peak < min_sep or
+                        (min_swing > 0 and e - a > 1 and peak < SWING_SEP * min_sep and
+                         _swing_fails(labels, gn, bn, g, b, rs, nr, k, step, end_gap, min_swing, min_sep))):
+                    for x in range(a, e):
+                        labels[x] = np.uint8(NONE)
+                        reason[x] = np.uint8(3)
+                    none_len += e - a
+                    continue
+                if e - a == 1:
+                    none_len += 1     # one mixed pixel of the dark and the first run: still the end
+                    continue
+            none_len = 0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def lit_means(g, b, bright_level):
     """Means of ``g`` and ``b`` (2-D float32) over the samples where ``max(g, b) > bright_level``
     (over all samples when fewer than 16 are that bright), summed in float64 in row-major order.
@@ -1877,7 +2003,7 @@ def _raw_hi_row(raw_g, raw_b, w, P, ta, tb, out):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def classify_image(g, b, gbal, bbal, raw_g, raw_b, raw_max, thr_w, norm_w, cyan_level, min_level, raw_margin,
-                   min_contrast, dark_level, saturation_level):
+                   min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap):
     """Stage 3 on whole images (the reference path of :func:`classify_frame`; see
     :func:`gbscan.decode.classify`).  g, b : blurred linear channels; gbal, bbal : balanced;
     raw_g, raw_b : linear before blurring; raw_max : uint8 max of raw green and blue (all (H, W)).
@@ -1906,6 +2032,7 @@ def classify_image(g, b, gbal, bbal, raw_g, raw_b, raw_max, thr_w, norm_w, cyan_
         classify_row(g[v], b[v], d[v], thr[v], lo_g[v], hi_g[v], lo_b[v], hi_b[v], raw_g[v], raw_b[v], raw_hi,
                      raw_max[v], cyan_level, min_level, raw_margin, min_contrast, dark_level, saturation_level,
                      labels[v], reason[v], gn[v], bn[v], contrast[v])
+        faint_runs_row(labels[v], reason[v], gn[v], bn[v], g[v], b[v], min_run_sep, min_run_swing, run_end_gap)
     return labels, reason, d, thr, gn, bn, contrast
 
 
@@ -1943,7 +2070,7 @@ def blur_frame(img, lut, kh, Lg, Lb, rmax, Bg, Bb):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def classify_frame(Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin, min_contrast,
-                   dark_level, saturation_level, labels, reason, gn, bn, contrast):
+                   dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, labels, reason, gn, bn, contrast):
     """Stages 2-3 of the fast path in one pass over the rows: colour balance with the global scales
     ``sg, sb``, ``d``, its local threshold, local min/max and the per-pixel rules.
 
@@ -1957,7 +2084,7 @@ def classify_frame(Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w, cyan_level, min_
     sc = _classify_scratch(W, thr_w, norm_w)
     for y in range(H + thr_w // 2):
         _classify_step(y, H, Lg, Lb, rmax, H, Bg, Bb, H, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin,
-                       min_contrast, dark_level, saturation_level, sc, labels, reason, gn, bn, contrast)
+                       min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, sc, labels, reason, gn, bn, contrast)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1980,7 +2107,7 @@ def _classify_scratch(W, thr_w, norm_w):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _classify_step(y, H, Lg, Lb, rmax, nL, Bg, Bb, nB, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin,
-                   min_contrast, dark_level, saturation_level, sc, labels, reason, gn, bn, contrast):
+                   min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, sc, labels, reason, gn, bn, contrast):
     # Step y of stages 2-3 (y = 0 .. H + thr_w//2 - 1): d of blurred row y (y < H) into the ring of
     # the threshold window, then row v = y - thr_w//2 classified (v >= 0).  Image row k of the
     # linear (Lg, Lb, rmax) and blurred (Bg, Bb) channels is row k % nL / k % nB of those arrays
@@ -2035,6 +2162,7 @@ def _classify_step(y, H, Lg, Lb, rmax, nL, Bg, Bb, nB, sg, sb, thr_w, norm_w, cy
     classify_row(g, b, Dr[v % nD], thr, lo_g, hi_g, lo_b, hi_b, raw_g, raw_b, raw_hi, rmax[v % nL], cyan_level,
                  min_level, raw_margin, min_contrast, dark_level, saturation_level,
                  labels[v], reason[v], gn[v], bn[v], contrast[v])
+    faint_runs_row(labels[v], reason[v], gn[v], bn[v], g, b, min_run_sep, min_run_swing, run_end_gap)
 
 
 def stream_rows(radius: int, thr_w: int) -> tuple[int, int]:
@@ -2097,7 +2225,7 @@ def balance_samples(img, lut, kh, gs, bs):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def stream_frame(img, lut, kh, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin, min_contrast,
-                 dark_level, saturation_level, Rg, Rb, Rm, Qg, Qb, labels, reason, gn, bn, contrast):
+                 dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, Rg, Rb, Rm, Qg, Qb, labels, reason, gn, bn, contrast):
     """Stages "input", 1, 2 (with the global scales ``sg, sb``, from :func:`balance_samples`) and 3
     of the fast path in one pass over the rows: each image row is linearised into a ring of rows
     (Rg, Rb float32, Rm uint8 raw maximum: (nL, W)), blurred into a ring (Qg, Qb: (nB, W)) as soon
@@ -2136,7 +2264,7 @@ def stream_frame(img, lut, kh, sg, sb, thr_w, norm_w, cyan_level, min_level, raw
                 gauss_rows(Rb, grow[:2 * r + 1], kh, Qb[yb % nB])
                 yb += 1
         _classify_step(y, H, Rg, Rb, Rm, nL, Qg, Qb, nB, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin,
-                       min_contrast, dark_level, saturation_level, sc, labels, reason, gn, bn, contrast)
+                       min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, sc, labels, reason, gn, bn, contrast)
     return top
 
 

@@ -23,7 +23,8 @@ run once with and once without); ``--yaw-deg`` turns the head / the real face (`
 
 ``--bayer RGGB`` renders through a colour filter mosaic and OpenCV's demosaicing (most colour
 cameras) instead of full RGB per pixel (the paper's 3-CCD camera); ``--jpeg QUALITY
-[--jpeg-sampling 4:2:0]`` stores the frames as JPEG (webcams, most "photo" modes).
+[--jpeg-sampling 4:2:0]`` stores the frames as JPEG (webcams, most "photo" modes); ``--ambient
+LEVEL`` lights the scene with warm room light (a fraction of the projector's light).
 
 ``--out DIR`` writes ``coverage_<scene>_s<seed>.png`` per frame: the lit non-edge pixels, kept in
 grey, lost ones coloured by reason (the decoder preview's colours), grazing ones (beyond 70
@@ -43,7 +44,7 @@ BINS_DEG = (0, 40, 60, 70, 75, 80, 90)
 
 
 def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", decode_params=None,
-          yaw_deg: float | None = None, depth_range=None, jpeg: dict | None = None,
+          yaw_deg: float | None = None, depth_range=None, conditions: dict | None = None,
           baseline_mm: float = 200.0, camera_px: tuple[int, int] = (640, 480)) -> dict:
     from gbscan import sim
     from gbscan.calibfile import calibration_from_rig
@@ -56,7 +57,7 @@ def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", 
     import dataclasses
 
     print(f"rendering {name} (seed {seed}, {preset}{', ' + bayer if bayer else ''}) ...", file=sys.stderr, flush=True)
-    cond = dataclasses.replace(sim.preset(preset), bayer=bayer, **(jpeg or {}))
+    cond = dataclasses.replace(sim.preset(preset), bayer=bayer, **(conditions or {}))
     scene = getattr(sim.scenes, name)(**({} if yaw_deg is None else {"yaw_deg": yaw_deg}))
     r = sim.render(rig, scene, render_pattern(spec), cond, seed=seed)
     from gbscan.clean import CleanParams
@@ -158,10 +159,11 @@ def main(argv=None) -> int:
     ap.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
                     help="a gbscan.decode.DecodeParams field other than the default (repeatable), "
                          "e.g. extrapolate_fit=0")
-    from gbscan.cli_common import (add_rig_arguments, add_bayer_argument, add_jpeg_arguments, jpeg_fields,
-                                   jpeg_label, rig_from_args)
+    from gbscan.cli_common import (add_rig_arguments, add_ambient_argument, add_bayer_argument, add_jpeg_arguments,
+                                   ambient_fields, ambient_label, jpeg_fields, jpeg_label, rig_from_args)
 
     add_rig_arguments(ap)
+    add_ambient_argument(ap)
     add_bayer_argument(ap)
     add_jpeg_arguments(ap)
     args = ap.parse_args(argv)
@@ -200,15 +202,16 @@ def main(argv=None) -> int:
     yaw = "" if args.yaw_deg is None else f", yaw {args.yaw_deg:g} deg"
     try:
         rig_from_args(args)
+        conditions = {**jpeg_fields(args), **ambient_fields(args)}
     except GBError as e:
         ap.error(str(e))
     print(f"# coverage study, paper rig (baseline {args.baseline_mm:g} mm, camera {args.camera[0]}x{args.camera[1]}), preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}"
-          f"{jpeg_label(args)}{yaw}, "
+          f"{jpeg_label(args)}{ambient_label(args)}{yaw}, "
           f"{dec}, default cleaning")
     for name in names:
         for seed in seeds:
             res = study(name, seed, args.preset, out, args.bayer, decode_params, args.yaw_deg, args.depth_range,
-                        jpeg_fields(args), args.baseline_mm, args.camera)
+                        conditions, args.baseline_mm, args.camera)
             if "picture" in res:
                 print(f"   wrote {res['picture']}")
     return 0

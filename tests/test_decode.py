@@ -16,6 +16,11 @@ from gbscan.pattern import PatternSpec, render_pattern
 #: Each scenario test checks its mechanism under these and the defaults' result on the same frame.
 #: (One end row, as then: the automatic ``rim_end_rows`` would take the sigma, 2 rows; and the
 #: guard next to unindexed and isolated pixels only, not ``no_boundary`` ones; no brightness-step guard.)
+#: The decoder without the faint-run tests (``min_run_separation``, ``min_run_swing``): scenarios
+#: found before them reproduce their failure with these off (the tests peel some of the row bits
+#: those failures ran through).
+NO_FAINT = {"min_run_separation": 0.0, "min_run_swing": 0.0}
+
 SIGMA2 = {"blur_sigma_along_px": 2.0, "rim_guard_px": 2, "rim_end_px": 1, "rim_end_rows": 1,
           "rim_guard_no_boundary": False, "step_guard_ratio": 0}
 
@@ -265,7 +270,7 @@ def test_fast_path_is_bit_identical_to_the_staged_functions(case):
     np.testing.assert_array_equal(bg * sg, balanced[0])
     out = [np.empty((H, W), t) for t in (np.uint8, np.uint8, np.float32, np.float32, np.float32)]
     kernels.classify_frame(lg, lb, rmax, bg, bb, sg, sb, decode_module._threshold_window(params),
-                           params.norm_window_px | 1, *decode_module._rule_args(params), *out)
+                           params.norm_window_px | 1, *decode_module._stage3_args(params), *out)
     assert np.count_nonzero(ref.labels) > 0
     for got, want, name in zip(out, (ref.labels, ref.reason, ref.gn, ref.bn, ref.contrast),
                                ("labels", "reason", "gn", "bn", "contrast")):
@@ -514,10 +519,13 @@ def test_sphere_rims_masked_not_biased():
     assert 0 < rim_cost < 0.05 and sm.stats["reasons"]["rim"] == (sm.mask == RIM).sum()
     # the rule is what removes the biased pixels (the pull grows with the blur: measured with the
     # fixed 2 px blur used before the automatic one, which picks 1 px here): without it the bound
-    # fails (3.8 px with the quadratic end extrapolation, 4.3 px with the straight line)
+    # fails (3.8 px with the quadratic end extrapolation, 4.3 px with the straight line; the
+    # faint-run rules, min_run_separation / min_run_swing, drop some of the same pixels at the projector's
+    # terminator: with it and without the rim rule, 3.3 px)
     assert sm.stats["blur_sigma_along_px"] == 1.0
     sm2 = decode(r.image, PatternSpec(), DecodeParams(**SIGMA2))
-    sm0 = decode(r.image, PatternSpec(), DecodeParams(**{**SIGMA2, "rim_bias_px": 0, "rim_end_px": 0}))
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(**{**SIGMA2, "rim_bias_px": 0, "rim_end_px": 0,
+                                                          "min_run_separation": 0, "min_run_swing": 0}))
     ok0 = sm0.valid & np.isfinite(truth) & ~r.depth_edge
     ok2 = sm2.valid & np.isfinite(truth) & ~r.depth_edge
     assert np.abs(sm0.column - truth)[ok0].max() > 3.5 and np.abs(sm2.column - truth)[ok2].max() < 3.5
@@ -636,10 +644,11 @@ def test_weld_through_boundary_bits_is_not_indexed(distance_mm, seed, ss, worst_
     assert (off_by(decode(r.image, PatternSpec())) != 0).sum() <= 10  # the defaults
     new = off_by(decode(r.image, PatternSpec(), DecodeParams(**SIGMA2)))
     # (as the unwrapping was then: also without marker_end_flank, whose one-pixel flanks change
-    # the row bits the weld ran through at 600 mm)
+    # the row bits the weld ran through at 600 mm, and without the faint-run tests, which peel
+    # some of them)
     old = off_by(decode(r.image, PatternSpec(), DecodeParams(
         unwrap=UnwrapParams(min_believable_junctions=0, link_slope_unmeasured=False, marker_end_flank=False),
-        **SIGMA2)))
+        min_run_separation=0.0, min_run_swing=0.0, **SIGMA2)))
     assert (np.abs(old) == worst_off).sum() > 1000          # the failure as it was (measured 2575 / 2391)
     assert (np.abs(new) == worst_off).sum() == 0
     # the later rule that a component the slope test cannot measure is not linked refuses this
@@ -1012,7 +1021,7 @@ def test_fast_path_is_bit_identical_across_windows_and_kernels(sigma, thr_w, nor
     sg, sb = decode_module.balance_scales(bg, bb)
     out = [np.empty((H, W), t) for t in (np.uint8, np.uint8, np.float32, np.float32, np.float32)]
     kernels.classify_frame(lg, lb, rmax, bg, bb, sg, sb, decode_module._threshold_window(params), norm_w,
-                           *decode_module._rule_args(params), *out)
+                           *decode_module._stage3_args(params), *out)
     assert np.count_nonzero(ref.labels) > 0
     for got, want, name in zip(out, (ref.labels, ref.reason, ref.gn, ref.bn, ref.contrast),
                                ("labels", "reason", "gn", "bn", "contrast")):
@@ -1154,7 +1163,7 @@ def test_stream_frame_is_bit_identical_to_the_staged_functions(sigma, thr_w, nor
     n_rows = kernels.stream_rows(kh.size - 1, thr_w)
     for rings in (ws.rings(*n_rows), decode_module._Workspace(H, W).rings(n_rows[0] + 5, n_rows[1] + 3)):
         out = [np.full((H, W), 77, t) for t in (np.uint8, np.uint8, np.float32, np.float32, np.float32)]
-        top = kernels.stream_frame(img, lut, kh, sg, sb, thr_w, norm_w, *decode_module._rule_args(params), *rings,
+        top = kernels.stream_frame(img, lut, kh, sg, sb, thr_w, norm_w, *decode_module._stage3_args(params), *rings,
                                    *out)
         assert top == img[..., 1:].max()
         for got, want, name in zip(out, (ref.labels, ref.reason, ref.gn, ref.bn, ref.contrast),
@@ -1175,7 +1184,7 @@ def test_stream_frame_refuses_rings_too_small_and_workspace_is_small():
         rings = decode_module._Workspace(H, W).rings(n_lin, n_blur)
         with pytest.raises(ValueError, match="rings too small"):
             kernels.stream_frame(img, decode_module.gamma_lut(2.2), kh, np.float32(1), np.float32(1), 15, 15,
-                                 *decode_module._rule_args(p), *rings, *out)
+                                 *decode_module._stage3_args(p), *rings, *out)
     # the fast path keeps no full-size linear or blurred channel: 14 bytes per pixel and the rings
     decode_module.release_workspace()
     decode(img, PatternSpec(), p)
@@ -1335,8 +1344,9 @@ def test_weld_across_an_unlocated_boundary_is_cut(scene, sigma_px, wrong_without
     else:
         cond = dataclasses.replace(sim.preset("typical"), supersample=3)
         r = sim.render(sim.paper_rig(), sim.scenes.multi_object(760.0), render_pattern(PatternSpec()), cond, seed=1)
-    sm = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px, rim_end_rows=1))
-    sm0 = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px, rim_end_rows=1,
+    found = {"blur_sigma_along_px": sigma_px, "rim_end_rows": 1, **NO_FAINT}
+    sm = decode(r.image, PatternSpec(), DecodeParams(**found))
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(**found,
                                                       unwrap=UnwrapParams(bridge_ratio=0.0, retry_spacing_ratio=0.0)))
     assert _wrong_off_edges(decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px)), r) == 0
     assert _wrong_off_edges(sm0, r) > wrong_without  # the weld is there without the rule
@@ -1390,7 +1400,7 @@ def test_short_fragment_hanging_from_one_lined_up_row_is_not_linked(frame, sigma
     from gbscan.unwrap import UnwrapParams
 
     r = _moving_frame(650.0 + 5.0 * frame, frame)
-    found = {"blur_sigma_along_px": sigma_px, "rim_end_rows": 1, "rim_guard_no_boundary": False}
+    found = {"blur_sigma_along_px": sigma_px, "rim_end_rows": 1, "rim_guard_no_boundary": False, **NO_FAINT}
     sm = decode(r.image, PatternSpec(), DecodeParams(**found))
     sm0 = decode(r.image, PatternSpec(), DecodeParams(**found, unwrap=UnwrapParams(link_hang_rows=0)))
     assert _wrong_off_edges(decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px)), r) == 0
@@ -1571,9 +1581,8 @@ def test_real_face_marker_end_flank_keeps_markers_at_the_shadow_edge():
     shadow side's edge cuts through marker stripes, and the pixel mixing a marker with the dark
     reads as the colour contradicting the marker's other flank (``. G C B``).  With
     ``marker_end_flank`` that pixel is unlabelled and the marker stays with its surface: more of
-    the face reported (measured 80.73 -> 81.38 % of lit non-edge pixels), none wrong."""
-    import dataclasses
-
+    the face reported (measured 80.73 -> 81.38 % of lit non-edge pixels, without the faint-run
+    tests; 82.18 % with them), none wrong."""
     from gbscan.unwrap import UnwrapParams
 
     if not sim.scenes.FRAN_PATH.is_file():
@@ -1588,7 +1597,165 @@ def test_real_face_marker_end_flank_keeps_markers_at_the_shadow_edge():
         wrong = ok & ~r.depth_edge & (np.abs(np.where(ok, sm.column - truth, 0)) >= PatternSpec().stripe_px / 2)
         return (sm.valid & cand).sum() / cand.sum(), int(wrong.sum())
 
-    on, wrong_on = figures(DecodeParams())
-    off, wrong_off = figures(dataclasses.replace(DecodeParams(), unwrap=UnwrapParams(marker_end_flank=False)))
-    print(f"real face: reported {100 * off:.2f} -> {100 * on:.2f} %, wrong {wrong_off} -> {wrong_on}")
+    # (without the faint-run tests, as found: they peel such a pixel too when it ends a faint run)
+    on, wrong_on = figures(DecodeParams(**NO_FAINT))
+    off, wrong_off = figures(DecodeParams(**NO_FAINT, unwrap=UnwrapParams(marker_end_flank=False)))
+    now, wrong_now = figures(DecodeParams())
+    print(f"real face: reported {100 * off:.2f} -> {100 * on:.2f} %, wrong {wrong_off} -> {wrong_on}; "
+          f"defaults {100 * now:.2f} %, wrong {wrong_now}")
     assert on > off + 0.004 and wrong_on == 0 and wrong_off == 0
+    assert now >= on and wrong_now == 0
+
+
+# -- faint runs at stretch ends (ambient light beside a projector terminator) --------------------
+
+def test_faint_runs_row_peels_stretch_ends_only():
+    """kernels.faint_runs_row: faint green/blue runs at a stretch end (the border, or a gap of at
+    least end_gap px) are unlabelled one after another until a run that separates the channels;
+    faint runs inside a stretch, beyond a short gap, or behind a marker stay; 0 disables it."""
+    from gbscan import kernels as K
+
+    N, G, B, C = 0, 1, 2, 3
+    #        faint end runs, strong ones, an interior faint run, a short gap, a faint run, a marker, a faint end
+    labels = np.array([N, N, G, G, B, B, G, G, B, B, G, B, B, N, G, G, C, C, B, B, N, N, N], np.uint8)
+    sep = np.array([.9, 0, .1, .2, .25, .1, .9, .8, .7, .9, .1, .8, .9, 0, .1, .1, .1, .1, .2, .2, 0, 0, 0],
+                   np.float32)
+    gn = (0.5 + sep / 2).astype(np.float32)
+    bn = (0.5 - sep / 2).astype(np.float32)
+
+    def run(min_sep, end_gap=2, lab=labels):
+        lab, reason = lab.copy(), np.zeros(lab.size, np.uint8)
+        flat = np.ones(lab.size, np.float32)    # no swing test here (min_swing 0)
+        K.faint_runs_row(lab, reason, gn, bn, flat, flat, np.float32(min_sep), np.float32(0), end_gap)
+        return lab, reason
+
+    lab, reason = run(0.3)
+    want = labels.copy()
+    want[2:6] = N          # the two faint runs at the left end, peeled in turn, up to a strong one
+    want[18:20] = N        # the faint run at the right end; the marker stops the peeling there
+    np.testing.assert_array_equal(lab, want)   # the interior faint run (10) and the one at 14-15 stay
+    np.testing.assert_array_equal(reason, np.where(lab != labels, 3, 0))
+    np.testing.assert_array_equal(run(0.0)[0], labels)
+    # without the marker the peeling goes on through the faint runs and the short gap they uncover
+    lab2 = labels.copy()
+    lab2[16:18] = B
+    got, _ = run(0.3, lab=lab2)
+    assert (got[13:20] == N).all() and (got[11:13] == B).all()
+    # a gap shorter than end_gap is bridged by the unwrapping: no end there (unless what is before
+    # it is one pixel at the end itself: the mixed pixel of the dark and a stripe)
+    short = np.array([G, G, N, G, G, B, B, G, G], np.uint8)
+    s2 = np.array([.9, .9, 0, .1, .1, .1, .1, .9, .9], np.float32)
+    g2, b2 = (0.5 + s2 / 2).astype(np.float32), (0.5 - s2 / 2).astype(np.float32)
+
+    def run2(lab, end_gap):
+        lab, reason = lab.copy(), np.zeros(lab.size, np.uint8)
+        flat = np.ones(lab.size, np.float32)
+        K.faint_runs_row(lab, reason, g2, b2, flat, flat, np.float32(0.3), np.float32(0), end_gap)
+        return lab
+
+    np.testing.assert_array_equal(run2(short, 2), short)
+    np.testing.assert_array_equal(run2(short, 1), [G, G, N, N, N, N, N, G, G])
+    mixed = np.array([G, N, G, G, G, B, B, G, G], np.uint8)   # one pixel at the border, a 1 px gap, faint runs
+    np.testing.assert_array_equal(run2(mixed, 2), [G, N, N, N, N, N, N, G, G])
+
+
+def test_faint_runs_row_peels_one_sided_runs():
+    """The swing test of kernels.faint_runs_row: an end run whose own colour does not swing against
+    the next run inward (ambient light with a warm cast beside a blue stripe: only less blue, not
+    greener) is peeled, whatever its normalised separation; a real green stripe swings both."""
+    from gbscan import kernels as K
+
+    N, G, B = 0, 1, 2
+    labels = np.array([N, N, G, G, G, B, B, B, G, G, G, N, N], np.uint8)
+    g = np.array([0, 0, 45, 44, 46, 50, 52, 50, 90, 92, 90, 0, 0], np.float32)
+    b = np.array([0, 0, 31, 30, 32, 55, 57, 55, 20, 21, 20, 0, 0], np.float32)
+    # separations: the end run 0.4 (not faint, but short of twice the faint level, where the swing
+    # test looks), the stripes 0.9
+    sep = np.where(labels == N, 0.0, 0.9).astype(np.float32)
+    sep[2:5] = 0.4
+
+    def run(min_swing, sep=sep):
+        gn, bn = (0.5 + sep / 2).astype(np.float32), (0.5 - sep / 2).astype(np.float32)
+        lab, reason = labels.copy(), np.zeros(labels.size, np.uint8)
+        K.faint_runs_row(lab, reason, gn, bn, g, b, np.float32(0.3), np.float32(min_swing), 2)
+        return lab, reason
+
+    lab, reason = run(0.1)
+    want = labels.copy()
+    want[2:5] = N          # greener by -5 % while 28 % less blue: no green stripe
+    np.testing.assert_array_equal(lab, want)   # the blue run then swings both ways against the green one
+    assert (reason[2:5] == 3).all() and (reason[5:] == 0).all()
+    np.testing.assert_array_equal(run(0.0)[0], labels)
+    # a run that separates the channels clearly is a stripe, whatever its swing
+    clear = sep.copy()
+    clear[2:5] = 0.9
+    np.testing.assert_array_equal(run(0.1, clear)[0], labels)
+    # a faint neighbour (the mixed pixels beside a marker, X Y C X) is no reference
+    faint_nb = sep.copy()
+    faint_nb[5:8] = 0.2
+    got = run(0.1, faint_nb)[0]
+    assert (got[2:5] == G).all()
+
+
+def test_ambient_light_at_a_terminator_gives_no_wrong_stripes():
+    """Warm room light at a quarter of the projector's level on a sphere: at the projector's
+    terminator the stripes fade out and the ambient light's colour cast reads as green / blue runs
+    beside them.  With the faint-run rule no reported pixel is more than half a stripe off
+    (without it: dozens, 4-10 projector px off)."""
+    import dataclasses
+
+    from gbscan import sim
+    from gbscan.cli_common import AMBIENT_TINT_RGB
+
+    spec = PatternSpec()
+    cond = dataclasses.replace(sim.preset("typical"), ambient_rgb=tuple(0.25 * t for t in AMBIENT_TINT_RGB))
+    r = sim.render(sim.paper_rig(), sim.scenes.sphere(), render_pattern(spec), cond, seed=0)
+    good = r.lit & ~r.depth_edge
+
+    def wrong(params):
+        sm = decode(r.image, spec, params)
+        err = np.abs(sm.column - r.proj_xy[..., 0])
+        return int((np.isfinite(sm.column) & ~r.depth_edge & ~(err <= spec.stripe_px / 2)).sum()), sm, good
+
+    n_off, _, _ = wrong(DecodeParams(min_run_separation=0.0, min_run_swing=0.0))
+    n_faint, _, _ = wrong(DecodeParams(min_run_swing=0.0))
+    n_on, sm, good = wrong(DecodeParams())
+    assert n_off >= 20
+    assert n_on == 0 and n_faint <= 2
+    assert (sm.valid & good).sum() > 0.9 * good.sum()
+    assert (sm.mask == decode_module.LOW_CONTRAST).sum() > 0
+
+
+def test_min_run_separation_is_validated():
+    with pytest.raises(GBError, match="min_run_swing"):
+        DecodeParams(min_run_swing=-1)
+    with pytest.raises(GBError, match="min_run_separation"):
+        DecodeParams(min_run_separation=1.0)
+    with pytest.raises(GBError, match="min_run_separation"):
+        DecodeParams(min_run_separation=-0.1)
+
+
+def test_ambient_light_beyond_a_face_terminator_is_not_reported():
+    """The face at warm room light of 0.15: beside the nose's attached shadow the ambient light
+    reads as a green run that is only less blue than the blue stripe next to it; it was reported
+    (3-6 mm off after triangulation).  The swing test drops it: no reported pixel outside depth
+    edges that the projector does not light."""
+    import dataclasses
+
+    from gbscan import sim
+    from gbscan.cli_common import AMBIENT_TINT_RGB
+
+    spec = PatternSpec()
+    cond = dataclasses.replace(sim.preset("typical"), ambient_rgb=tuple(0.15 * t for t in AMBIENT_TINT_RGB))
+    r = sim.render(sim.paper_rig(), sim.scenes.head(), render_pattern(spec), cond, seed=0)
+
+    def unlit(params):
+        sm = decode(r.image, spec, params)
+        return int((sm.valid & ~r.lit & ~r.depth_edge).sum()), sm
+
+    n_faint, _ = unlit(DecodeParams(min_run_swing=0.0))
+    n_on, sm = unlit(DecodeParams())
+    assert n_faint >= 5
+    assert n_on == 0
+    good = r.lit & ~r.depth_edge
+    assert (sm.valid & good).sum() > 0.85 * good.sum()

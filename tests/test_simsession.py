@@ -159,6 +159,25 @@ def test_cli_simulate(tmp_path):
     assert main(["simulate", "plane", "-o", str(tmp_path / "a.png"), "--truth", str(tmp_path / "t.txt")]) == 1
 
 
+def test_cli_simulate_takes_room_light(tmp_path, capsys):
+    """--ambient LEVEL lights the scene with warm room light (red / green / blue 1 / 0.8 / 0.6 of
+    LEVEL): the frame's unlit background brightens with that tint; a level outside 0-2 is one
+    error line."""
+    from gbscan.cli import main
+
+    dark, lit = tmp_path / "dark.png", tmp_path / "lit.png"
+    assert main(["simulate", "step", "-o", str(dark), "--preset", "clean", "--ambient", "0"]) == 0
+    assert main(["simulate", "step", "-o", str(lit), "--preset", "clean", "--ambient", "0.4"]) == 0
+    assert "ambient 0.4" in capsys.readouterr().out
+    a = read_image_rgb(dark, size=(640, 480)).astype(float)
+    b = read_image_rgb(lit, size=(640, 480)).astype(float)
+    gain = (b - a).reshape(-1, 3).mean(axis=0)
+    assert gain[0] > gain[1] > gain[2] > 5          # warm: red most, blue least
+    assert main(["simulate", "step", "-o", str(tmp_path / "x.png"), "--ambient", "3"]) == 1
+    assert "--ambient must be 0-2" in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists()
+
+
 def test_cli_simulators_take_a_bayer_camera(tmp_path, capsys):
     """--bayer renders through a colour filter mosaic and OpenCV's demosaicing (most colour
     cameras): the image differs from the full-RGB one of the same scene and seed, and a session

@@ -13,13 +13,14 @@ SCENES = ["plane", "sphere", "head", "step", "multi", "board", "face"]
 
 
 def add_arguments(p):
-    from gbscan.cli_common import add_rig_arguments, add_bayer_argument, add_jpeg_arguments
+    from gbscan.cli_common import add_rig_arguments, add_ambient_argument, add_bayer_argument, add_jpeg_arguments
 
     p.add_argument("scene", choices=SCENES, metavar="SCENE", help="one of " + ", ".join(SCENES))
     p.add_argument("-o", "--output", required=True, help="output PNG (camera image, RGB)")
     p.add_argument("--preset", default="typical", choices=["clean", "typical", "hard"],
                    help="imaging conditions (default typical)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    add_ambient_argument(p)
     add_bayer_argument(p)
     p.add_argument("--raw", action="store_true",
                    help="with --bayer: write the raw mosaic (one channel), as a machine-vision camera delivers "
@@ -63,7 +64,7 @@ def run(args) -> int:
 
     from gbscan import sim
     from gbscan.errors import GBError
-    from gbscan.cli_common import rig_label, jpeg_fields, jpeg_label, rig_from_args
+    from gbscan.cli_common import ambient_fields, ambient_label, rig_label, jpeg_fields, jpeg_label, rig_from_args
     from gbscan.io import read_image_rgb, write_png
     from gbscan.pattern import PatternSpec, render_pattern
 
@@ -81,10 +82,12 @@ def run(args) -> int:
         frame = render_pattern(PatternSpec(pw, ph, args.stripe_px, not args.no_markers))
     t0 = time.time()
     scene = make_scene(args.scene, args.distance_mm)
-    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer, bayer_raw=args.raw, **jpeg_fields(args))
+    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer, bayer_raw=args.raw, **jpeg_fields(args),
+                               **ambient_fields(args))
     r = sim.render(rig, scene, frame, cond, seed=args.seed)
     out = write_png(args.output, r.image)
-    camera = (f", Bayer {args.bayer}{' raw mosaic' if args.raw else ''}" if args.bayer else "") + jpeg_label(args)
+    camera = (f", Bayer {args.bayer}{' raw mosaic' if args.raw else ''}" if args.bayer else "") + jpeg_label(args) \
+        + ambient_label(args)
     msg = (f"wrote {out} ({args.scene}, preset {args.preset}{camera}{rig_label(args)}, seed {args.seed}, "
            f"{time.time() - t0:.1f} s)")
     if args.truth:
