@@ -91,8 +91,9 @@ class DecodeParams:
         local min and max) differ by ``min_run_separation`` (*faint*), or when against the next
         run inward its own colour swings less than ``min_run_swing`` times the other colour
         (*one-sided*: a green stripe is greener and less blue than the blue one beside it; warm
-        light is only less blue); the run it uncovers is tested next (``kernels.faint_runs_row``;
-        0 disables a test).  Light without the pattern -- room light with a colour cast beside
+        light is only less blue); the run it uncovers is tested next, and a cyan run at an end is
+        peeled when the next run of more than a pixel behind it is faint (cool light raises both
+        channels: no marker) (``kernels.faint_runs_row``; 0 disables a test).  Light without the pattern -- room light with a colour cast beside
         stripes fading out at a projector terminator or an attached shadow -- is split into
         "green" and "blue" by the local threshold, and the local windows still see the stripes
         beside it, so no per-pixel rule drops it; the unwrapping counted its runs as stripes, 2-10

@@ -1548,6 +1548,28 @@ def _swing_fails(labels, gn, bn, g, b, rs, nr, k, step, end_gap, min_swing, min_
     return oth > 0 and own < min_swing * oth
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _faint_behind(labels, gn, bn, rs, nr, k, step, end_gap, min_sep):
+    # whether the first green or blue run of more than one pixel inward of run k (k + step, ...;
+    # through gaps shorter than end_gap and one-pixel runs) is a faint one (peak separation below
+    # min_sep): a cyan run at a stretch's end in front of it is no marker but room light with both
+    # channels up
+    j = k + step
+    while 0 <= j < nr:
+        lab = labels[rs[j]]
+        n = rs[j + 1] - rs[j]
+        if lab == NONE:
+            if n >= end_gap:
+                return False
+        elif lab == GREEN or lab == BLUE:
+            if n > 1:
+                return _peak_sep(gn, bn, rs[j], rs[j + 1]) < min_sep
+        else:
+            return False
+        j += step
+    return False
+
+
 #: faint_runs_row's swing test looks only at runs whose peak separation is below this many times
 #: ``min_sep`` (a run that separates the channels clearly is a stripe, whatever its swing)
 SWING_SEP = 2.0
@@ -1607,6 +1629,13 @@ def faint_runs_row(labels, reason, gn, bn, g, b, min_sep, min_swing, end_gap):
                 if e - a == 1:
                     none_len += 1     # one mixed pixel of the dark and the first run: still the end
                     continue
+            elif lab == CYAN and none_len >= end_gap and min_sep > 0 and \
+                    _faint_behind(labels, gn, bn, rs, nr, k, step, end_gap, min_sep):
+                for x in range(a, e):  # light with both channels up (a cool cast) beside faint runs
+                    labels[x] = np.uint8(NONE)
+                    reason[x] = np.uint8(3)
+                none_len += e - a
+                continue
             none_len = 0
 
 

@@ -1616,7 +1616,7 @@ def test_faint_runs_row_peels_stretch_ends_only():
     from gbscan import kernels as K
 
     N, G, B, C = 0, 1, 2, 3
-    #        faint end runs, strong ones, an interior faint run, a short gap, a faint run, a marker, a faint end
+    #        faint end runs, strong ones, an interior faint run, a short gap, a faint run, cyan, a faint end
     labels = np.array([N, N, G, G, B, B, G, G, B, B, G, B, B, N, G, G, C, C, B, B, N, N, N], np.uint8)
     sep = np.array([.9, 0, .1, .2, .25, .1, .9, .8, .7, .9, .1, .8, .9, 0, .1, .1, .1, .1, .2, .2, 0, 0, 0],
                    np.float32)
@@ -1632,8 +1632,8 @@ def test_faint_runs_row_peels_stretch_ends_only():
     lab, reason = run(0.3)
     want = labels.copy()
     want[2:6] = N          # the two faint runs at the left end, peeled in turn, up to a strong one
-    want[18:20] = N        # the faint run at the right end; the marker stops the peeling there
-    np.testing.assert_array_equal(lab, want)   # the interior faint run (10) and the one at 14-15 stay
+    want[14:20] = N        # from the right: the faint run, the "marker" in front of a faint run, that run
+    np.testing.assert_array_equal(lab, want)   # the interior faint run (10) stays
     np.testing.assert_array_equal(reason, np.where(lab != labels, 3, 0))
     np.testing.assert_array_equal(run(0.0)[0], labels)
     # without the marker the peeling goes on through the faint runs and the short gap they uncover
@@ -1657,6 +1657,36 @@ def test_faint_runs_row_peels_stretch_ends_only():
     np.testing.assert_array_equal(run2(short, 1), [G, G, N, N, N, N, N, G, G])
     mixed = np.array([G, N, G, G, G, B, B, G, G], np.uint8)   # one pixel at the border, a 1 px gap, faint runs
     np.testing.assert_array_equal(run2(mixed, 2), [G, N, N, N, N, N, N, G, G])
+
+
+def test_faint_runs_row_peels_a_cyan_end_in_front_of_faint_runs():
+    """A cyan run at a stretch's end stops the peeling when a stripe follows (a marker at a
+    silhouette), but not when the next run of more than a pixel is faint: room light with a cool
+    cast raises both channels beside stripes fading out, and reads as cyan."""
+    from gbscan import kernels as K
+
+    N, G, B, C = 0, 1, 2, 3
+
+    def run(labels, sep):
+        labels = np.array(labels, np.uint8)
+        sep = np.array(sep, np.float32)
+        gn, bn = (0.5 + sep / 2).astype(np.float32), (0.5 - sep / 2).astype(np.float32)
+        flat = np.ones(labels.size, np.float32)
+        reason = np.zeros(labels.size, np.uint8)
+        K.faint_runs_row(labels, reason, gn, bn, flat, flat, np.float32(0.3), np.float32(0), 2)
+        return labels.tolist()
+
+    #            fake cyan, a mixed pixel, a faint run, then stripes
+    assert run([N, N, C, C, B, G, G, G, B, B, B, G, G], [0, 0, .05, .05, .3, .05, .05, .05, .9, .9, .9, .9, .9]) \
+        == [N, N, N, N, N, N, N, N, B, B, B, G, G]
+    # a marker in front of a stripe stays (the faint run at the other end goes)
+    assert run([N, N, C, C, G, G, G, B, B], [0, 0, .05, .05, .9, .9, .9, .1, .1]) == [N, N, C, C, G, G, G, N, N]
+    # without the separation test (min_sep 0) nothing is peeled
+    labels = np.array([N, C, C, B, B, B], np.uint8)
+    reason = np.zeros(6, np.uint8)
+    z = np.zeros(6, np.float32)
+    K.faint_runs_row(labels, reason, z, z, z + 1, z + 1, np.float32(0), np.float32(0), 2)
+    assert labels.tolist() == [N, C, C, B, B, B]
 
 
 def test_faint_runs_row_peels_one_sided_runs():
@@ -1759,3 +1789,27 @@ def test_ambient_light_beyond_a_face_terminator_is_not_reported():
     assert n_on == 0
     good = r.lit & ~r.depth_edge
     assert (sm.valid & good).sum() > 0.85 * good.sum()
+
+
+def test_cool_room_light_read_as_cyan_at_a_terminator_is_dropped():
+    """Cool room light (blue most) at a quarter of the projector's level: beside the sphere's
+    projector terminator it raises both channels and reads as a cyan run, then a faint green run;
+    the cyan run stopped the peeling like a marker would, and the pixels behind it were reported
+    6-7 projector px off, unlit.  A cyan run at a stretch's end in front of a faint run is peeled
+    too: none left."""
+    import dataclasses
+
+    from gbscan import sim
+
+    spec = PatternSpec()
+    cond = dataclasses.replace(sim.preset("typical"), ambient_rgb=(0.15, 0.2, 0.25))
+    r = sim.render(sim.paper_rig(), sim.scenes.sphere(), render_pattern(spec), cond, seed=1)
+
+    def bad(params):
+        sm = decode(r.image, spec, params)
+        err = np.abs(sm.column - r.proj_xy[..., 0])
+        wrong = np.isfinite(sm.column) & ~r.depth_edge & ~(err <= spec.stripe_px / 2)
+        return int(wrong.sum()), int((sm.valid & ~r.lit & ~r.depth_edge).sum())
+
+    assert bad(DecodeParams(**NO_FAINT))[0] >= 3
+    assert bad(DecodeParams()) == (0, 0)
