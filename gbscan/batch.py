@@ -836,22 +836,38 @@ def _run_local(workers, processor, feeder, spec, state, max_in_flight) -> None:
 
     pool, board = new_pool()
     inflight: dict = {}
+    pending: list[_Task] = []   # tasks a broken pool refused: next in line, in order
     try:
         while True:
             cap = 1 if suspects else limit
+            refused = False
             while len(inflight) < cap:
                 if suspects:
                     if inflight:
                         break
-                    t = suspects.pop(0)
+                    t, src = suspects.pop(0), suspects
+                elif pending:
+                    t, src = pending.pop(0), pending
                 else:
-                    t = next(it, None) if not exhausted else None
+                    t, src = (next(it, None) if not exhausted else None), pending
                     if t is None:
                         exhausted = True
                         break
-                inflight[pool.submit(_pool_task, t, spec)] = t
+                try:
+                    inflight[pool.submit(_pool_task, t, spec)] = t
+                except BrokenProcessPool:
+                    # a worker died since the last wait: the frames in flight report it below
+                    # (and the pool is made anew there); this task has not run, it waits its turn
+                    src.insert(0, t)
+                    refused = True
+                    break
+            if refused and not inflight:   # nothing in flight to report the death: a new pool now
+                hung.clear()
+                pool.shutdown(wait=True, cancel_futures=True)
+                pool, board = new_pool()
+                continue
             if not inflight:
-                if exhausted and not suspects:
+                if exhausted and not suspects and not pending:
                     return
                 continue
             done, _ = wait(inflight, timeout=None if board is None else min(1.0, grace_s),

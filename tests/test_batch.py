@@ -188,6 +188,34 @@ def test_worker_dying_mid_batch(tmp_path, read_in):
     assert (s.already_done, s.ok) == (7, 1)
 
 
+def test_a_pool_broken_before_a_submit_loses_no_frame(tmp_path, monkeypatch):
+    """A worker may die between the parent's wait and its next submit: the submit then raises
+    BrokenProcessPool (seen once in CI, test_worker_dying_mid_batch[parent]).  The refused task
+    waits its turn and nothing is lost: simulated here by refusing the first submit (nothing in
+    flight: a new pool at once) and a later one (frames in flight: they report, then it goes)."""
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    real = ProcessPoolExecutor.submit
+    calls = {"n": 0}
+
+    def flaky(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] in (1, 4):
+            raise BrokenProcessPool("simulated: a worker died since the last wait")
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(ProcessPoolExecutor, "submit", flaky)
+    d = _folder(tmp_path, n=8)
+    out = tmp_path / "out"
+    s = run_batch(open_frames(d), Fake(), out, workers=2, read_in="parent", progress=False)
+    assert (s.ok, s.failed) == (8, 0) and calls["n"] >= 10
+    rows = read_manifest(out / "manifest.csv")
+    for i in range(8):
+        assert rows[i]["status"] == "ok"
+        _check_frame(out, i)
+
+
 def test_hanging_frames_time_out_and_the_batch_goes_on(tmp_path):
     d = _folder(tmp_path, n=7)
     for i, colour in ((2, SPIN), (4, STUCK)):
