@@ -54,13 +54,8 @@ DEFAULT_CAMERA_PX = (640, 480)
 
 
 def camera_size(text: str) -> tuple[int, int]:
-    """``--camera WxH``: a camera size in pixels, e.g. 1280x960."""
-    import argparse
-
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels such as 1280x960, got {text!r}") from None
+    """``--camera WxH``: a camera size in pixels (:func:`size_arg`), 64-16384 a side."""
+    w, h = size_arg(text)
     if not (64 <= w <= 16384 and 64 <= h <= 16384):
         raise argparse.ArgumentTypeError(f"camera size must be 64-16384 pixels a side, got {text!r}")
     return w, h

@@ -93,11 +93,12 @@ class DecodeParams:
         (*one-sided*: a green stripe is greener and less blue than the blue one beside it; warm
         light is only less blue); the run it uncovers is tested next, and a cyan run at an end is
         peeled when the next run of more than a pixel behind it is faint (cool light raises both
-        channels: no marker) (``kernels.faint_runs_row``; 0 disables a test).  Light without the pattern -- room light with a colour cast beside
-        stripes fading out at a projector terminator or an attached shadow -- is split into
-        "green" and "blue" by the local threshold, and the local windows still see the stripes
-        beside it, so no per-pixel rule drops it; the unwrapping counted its runs as stripes, 2-10
-        projector px off, on pixels the projector does not light.  Measured (typical preset with
+        channels: no marker) (``kernels.faint_runs_row``; 0 disables a test).  Light without the
+        pattern -- room light with a colour cast beside stripes fading out at a projector
+        terminator or an attached shadow -- is split into "green" and "blue" by the local
+        threshold, and the local windows still see the stripes beside it, so no per-pixel rule
+        drops it; the unwrapping counted its runs as stripes, 2-10 projector px off, on pixels the
+        projector does not light.  Measured (typical preset with
         warm light 0.05 / 0.15 / 0.25 / 0.4 of the projector's, sphere, head, multi-object and
         step, seeds 0-1: 32 frames; off / 0.3 and 0.1): pixels more than half a stripe off outside
         depth edges 329 / 6, unlit pixels reported on sphere and head 317 / 0; the 48-scene

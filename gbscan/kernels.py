@@ -1616,27 +1616,26 @@ def faint_runs_row(labels, reason, gn, bn, g, b, min_sep, min_swing, end_gap):
             if lab == NONE:
                 none_len += e - a
                 continue
-            if (lab == GREEN or lab == BLUE) and none_len >= end_gap:
-                peak = _peak_sep(gn, bn, a, e)
-                if (peak < min_sep or
-                        (min_swing > 0 and e - a > 1 and peak < SWING_SEP * min_sep and
-                         _swing_fails(labels, gn, bn, g, b, rs, nr, k, step, end_gap, min_swing, min_sep))):
-                    for x in range(a, e):
-                        labels[x] = np.uint8(NONE)
-                        reason[x] = np.uint8(3)
-                    none_len += e - a
-                    continue
-                if e - a == 1:
-                    none_len += 1     # one mixed pixel of the dark and the first run: still the end
-                    continue
-            elif lab == CYAN and none_len >= end_gap and min_sep > 0 and \
-                    _faint_behind(labels, gn, bn, rs, nr, k, step, end_gap, min_sep):
-                for x in range(a, e):  # light with both channels up (a cool cast) beside faint runs
+            peel = False
+            if none_len >= end_gap:      # at an end of the stretch
+                if lab == GREEN or lab == BLUE:
+                    peak = _peak_sep(gn, bn, a, e)
+                    peel = peak < min_sep or (
+                        min_swing > 0 and e - a > 1 and peak < SWING_SEP * min_sep and
+                        _swing_fails(labels, gn, bn, g, b, rs, nr, k, step, end_gap, min_swing, min_sep))
+                    if not peel and e - a == 1:
+                        none_len += 1     # one mixed pixel of the dark and the first run: still the end
+                        continue
+                elif lab == CYAN and min_sep > 0:
+                    # light with both channels up (a cool cast) in front of faint runs: no marker
+                    peel = _faint_behind(labels, gn, bn, rs, nr, k, step, end_gap, min_sep)
+            if peel:
+                for x in range(a, e):
                     labels[x] = np.uint8(NONE)
                     reason[x] = np.uint8(3)
                 none_len += e - a
-                continue
-            none_len = 0
+            else:
+                none_len = 0
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -2099,7 +2098,8 @@ def blur_frame(img, lut, kh, Lg, Lb, rmax, Bg, Bb):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def classify_frame(Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin, min_contrast,
-                   dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, labels, reason, gn, bn, contrast):
+                   dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, labels, reason, gn, bn,
+                   contrast):
     """Stages 2-3 of the fast path in one pass over the rows: colour balance with the global scales
     ``sg, sb``, ``d``, its local threshold, local min/max and the per-pixel rules.
 
@@ -2113,7 +2113,8 @@ def classify_frame(Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w, cyan_level, min_
     sc = _classify_scratch(W, thr_w, norm_w)
     for y in range(H + thr_w // 2):
         _classify_step(y, H, Lg, Lb, rmax, H, Bg, Bb, H, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin,
-                       min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, sc, labels, reason, gn, bn, contrast)
+                       min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, sc,
+                       labels, reason, gn, bn, contrast)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -2136,7 +2137,8 @@ def _classify_scratch(W, thr_w, norm_w):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _classify_step(y, H, Lg, Lb, rmax, nL, Bg, Bb, nB, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin,
-                   min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, sc, labels, reason, gn, bn, contrast):
+                   min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, sc, labels,
+                   reason, gn, bn, contrast):
     # Step y of stages 2-3 (y = 0 .. H + thr_w//2 - 1): d of blurred row y (y < H) into the ring of
     # the threshold window, then row v = y - thr_w//2 classified (v >= 0).  Image row k of the
     # linear (Lg, Lb, rmax) and blurred (Bg, Bb) channels is row k % nL / k % nB of those arrays
@@ -2254,7 +2256,8 @@ def balance_samples(img, lut, kh, gs, bs):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def stream_frame(img, lut, kh, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin, min_contrast,
-                 dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, Rg, Rb, Rm, Qg, Qb, labels, reason, gn, bn, contrast):
+                 dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, Rg, Rb, Rm, Qg, Qb, labels,
+                 reason, gn, bn, contrast):
     """Stages "input", 1, 2 (with the global scales ``sg, sb``, from :func:`balance_samples`) and 3
     of the fast path in one pass over the rows: each image row is linearised into a ring of rows
     (Rg, Rb float32, Rm uint8 raw maximum: (nL, W)), blurred into a ring (Qg, Qb: (nB, W)) as soon
@@ -2293,7 +2296,8 @@ def stream_frame(img, lut, kh, sg, sb, thr_w, norm_w, cyan_level, min_level, raw
                 gauss_rows(Rb, grow[:2 * r + 1], kh, Qb[yb % nB])
                 yb += 1
         _classify_step(y, H, Rg, Rb, Rm, nL, Qg, Qb, nB, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin,
-                       min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, sc, labels, reason, gn, bn, contrast)
+                       min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, sc,
+                       labels, reason, gn, bn, contrast)
     return top
 
 

@@ -205,7 +205,8 @@ def main(argv=None) -> int:
         conditions = {**jpeg_fields(args), **ambient_fields(args)}
     except GBError as e:
         ap.error(str(e))
-    print(f"# coverage study, paper rig (baseline {args.baseline_mm:g} mm, camera {args.camera[0]}x{args.camera[1]}), preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}"
+    print(f"# coverage study, paper rig (baseline {args.baseline_mm:g} mm, camera {args.camera[0]}x{args.camera[1]}), "
+          f"preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}"
           f"{jpeg_label(args)}{ambient_label(args)}{yaw}, "
           f"{dec}, default cleaning")
     for name in names:
