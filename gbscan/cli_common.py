@@ -54,10 +54,14 @@ DEFAULT_CAMERA_PX = (640, 480)
 
 
 def camera_size(text: str) -> tuple[int, int]:
-    """``--camera WxH``: a camera size in pixels (:func:`size_arg`), 64-16384 a side."""
+    """``--camera WxH``: a camera size in pixels (:func:`size_arg`) that
+    :func:`gbscan.rig.paper_rig` builds (``CAMERA_SIDE_PX``)."""
+    from .rig import CAMERA_SIDE_PX
+
     w, h = size_arg(text)
-    if not (64 <= w <= 16384 and 64 <= h <= 16384):
-        raise argparse.ArgumentTypeError(f"camera size must be 64-16384 pixels a side, got {text!r}")
+    lo, hi = CAMERA_SIDE_PX
+    if not (lo <= w <= hi and lo <= h <= hi):
+        raise argparse.ArgumentTypeError(f"camera size must be {lo}-{hi} pixels a side, got {text!r}")
     return w, h
 
 

@@ -126,6 +126,10 @@ def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)) -> np.ndar
     return np.stack([x, y, z], axis=1)
 
 
+#: the camera sizes :func:`paper_rig` builds (pixels a side, inclusive)
+CAMERA_SIDE_PX = (64, 16384)
+
+
 def paper_rig(baseline_mm: float = 200.0, distance_mm: float = 650.0, *, distortion=True,
               camera_px: tuple[int, int] = (640, 480)) -> Rig:
     """The paper's geometry: a 640x480 camera and a 1024x768 DLP projector.
@@ -147,8 +151,9 @@ def paper_rig(baseline_mm: float = 200.0, distance_mm: float = 650.0, *, distort
         W, H = (int(x) for x in camera_px)
     except (TypeError, ValueError):
         raise GBError(f"paper_rig: camera_px must be (width, height) in pixels, got {camera_px!r}") from None
-    if not (64 <= W <= 16384 and 64 <= H <= 16384) or (W, H) != tuple(camera_px):
-        raise GBError(f"paper_rig: camera_px must be whole numbers of pixels in [64, 16384], got {camera_px!r}")
+    lo, hi = CAMERA_SIDE_PX
+    if not (lo <= W <= hi and lo <= H <= hi) or (W, H) != tuple(camera_px):
+        raise GBError(f"paper_rig: camera_px must be whole numbers of pixels in [{lo}, {hi}], got {camera_px!r}")
     f = 800.0 * W / 640.0
     cam = Camera(
         W,

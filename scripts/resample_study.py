@@ -100,10 +100,8 @@ def main(argv=None) -> int:
                     t = time.perf_counter()
                     decode(r.image, spec, params[b])
                     ts.append(time.perf_counter() - t)
-                ok = sm.valid & np.isfinite(truth)
-                err = np.where(ok, sm.column - truth, 0.0)
-                bad = ok & (np.abs(err) >= spec.stripe_px / 2)
-                good = ok & ~bad & ~r.depth_edge
+                err, bad = sim.column_errors(sm.column, sm.valid, truth, spec.stripe_px)
+                good = sm.valid & np.isfinite(truth) & ~bad & ~r.depth_edge
                 rms = float(np.sqrt(np.mean(err[good].astype(np.float64) ** 2))) if good.any() else float("nan")
                 print(f"{name:13s} {rig.camera.width:4d}x{rig.camera.height:<4d} {true_px:9.2f} {est:5.2f} "
                       f"{b:8g} {sm.stats.get('resample', 1.0):5.2f} {100 * (sm.valid & cand).sum() / max(cand.sum(), 1):10.2f} "

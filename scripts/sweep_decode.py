@@ -113,9 +113,9 @@ def load_or_render(name, preset, seed, ss, factory, cache: Path | None, jpeg: di
 
 def wrong_regions(sm, truth, depth_edge, stripe_px: int) -> tuple[dict, list[dict]]:
     """Per scene counts and the wrong pixels grouped by region (``sm`` decoded with keep_stages)."""
-    ok = sm.valid & np.isfinite(truth)
-    err = np.where(ok, sm.column - truth, 0.0)
-    bad = ok & (np.abs(err) >= stripe_px / 2)
+    from gbscan import sim
+
+    err, bad = sim.column_errors(sm.column, sm.valid, truth, stripe_px)
     counts = {"wrong": int((bad & ~depth_edge).sum()), "wrong_edge": int((bad & depth_edge).sum())}
     idx = sm.stages["index"] if sm.stages else None
     rows = []

@@ -417,3 +417,14 @@ def test_incidence_deg_on_a_tilted_plane_and_a_sphere():
         assert np.isnan(cam[~has]).all() and np.isnan(proj[~has]).all()
         if centre is not None:
             assert np.nanmax(cam[inner]) > 70 and np.nanmin(cam[inner]) < 5
+
+
+def test_column_errors_counts_half_a_stripe_or_more_as_wrong():
+    """sim.column_errors, the decoder metric of the study scripts: reported pixels with a true
+    column, wrong from half a stripe off; unreported or truthless pixels neither compared nor wrong."""
+    truth = np.array([[100.0, 100.0, 100.0, np.nan, 100.0]])
+    column = np.array([[100.5, 103.99, 96.0, 100.0, 140.0]], np.float32)
+    valid = np.array([[True, True, True, True, False]])
+    err, wrong = sim.column_errors(column, valid, truth, 8)
+    np.testing.assert_allclose(err, [[0.5, 3.99, -4.0, 0.0, 0.0]], atol=1e-5)
+    assert wrong.tolist() == [[False, False, True, False, False]]

@@ -17,10 +17,10 @@ from __future__ import annotations
 from ..rig import paper_rig
 from . import scenes
 from .presets import PRESETS, Conditions, preset
-from .render import (Render, Trace, camera_image, decode_dn, encode, incidence_deg, linear_signal, point_errors_mm,
-                     render, render_traced, trace)
+from .render import (Render, Trace, camera_image, column_errors, decode_dn, encode, incidence_deg, linear_signal,
+                     point_errors_mm, render, render_traced, trace)
 from .scenes import Scene, combine
 
 __all__ = ["paper_rig", "scenes", "Conditions", "PRESETS", "preset", "Render", "render", "Scene", "combine",
            "encode", "decode_dn", "Trace", "trace", "render_traced", "linear_signal", "camera_image",
-           "incidence_deg", "point_errors_mm"]
+           "incidence_deg", "point_errors_mm", "column_errors"]

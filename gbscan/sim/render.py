@@ -552,6 +552,18 @@ def point_errors_mm(r: Render, xyz: np.ndarray, valid: np.ndarray, footprint: bo
     return err
 
 
+def column_errors(column: np.ndarray, valid: np.ndarray, truth: np.ndarray,
+                  stripe_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """A decoder's columns against the simulator's (``r.proj_xy[..., 0]``): the error (projector
+    px, (H, W) float, 0 where not compared) and the *wrong* pixels ((H, W) bool): reported, with a
+    true column, at least half a stripe off -- on another stripe, not just a sub-pixel miss.  The
+    decoder metric of ``scripts/sweep_decode.py`` and ``scripts/resample_study.py`` (split it by
+    ``r.depth_edge``: such pixels mix two surfaces)."""
+    ok = np.asarray(valid, bool) & np.isfinite(truth)
+    err = np.where(ok, column - truth, 0.0)
+    return err, ok & (np.abs(err) >= stripe_px / 2)
+
+
 def incidence_deg(rig: Rig, r: Render) -> tuple[np.ndarray, np.ndarray]:
     """Camera and projector incidence of the true surface per pixel: angles (deg, (H, W) float64)
     between the surface normal and the directions to the camera centre and to the projector
