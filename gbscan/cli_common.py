@@ -179,6 +179,9 @@ def run_cli(prog: str, description: str, package: str, stages: list[str], argv=N
     if not args.command:
         parser.print_help()
         return 2
+    from gbscan.heap import keep_freed_memory
+
+    keep_freed_memory()   # frames reuse the memory the last one freed (no fresh page faults)
     return guarded(f"{prog} {args.command}", lambda: int(modules[args.command].run(args) or 0),
                    "; outputs not finished were not written")
 

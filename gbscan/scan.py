@@ -205,8 +205,10 @@ class Scanner:
 
     def __init__(self, calibration: Calibration | str | Path, *, pattern: PatternSpec | None = None,
                  decode_params=None, clean_params: CleanParams | None = None, min_angle_deg: float = 2.0):
+        from .heap import keep_freed_memory
         from .triangulate import GridTriangulator, PlaneTable
 
+        keep_freed_memory()   # each scan reuses the memory the last one freed (gbscan.heap)
         if isinstance(calibration, (str, Path)):
             calibration = load_calibration(calibration)
         if not isinstance(calibration, Calibration):

@@ -22,7 +22,8 @@ frame's own size (``--resample never``), its throughput there.
 Also printed: CPU milliseconds of the calling thread (less sensitive than wall time to other
 processes on the machine), minor page faults per frame (fresh output pages: on this virtual
 machine a fault costs about 2 us, i.e. 1-4 ms per frame in a process whose malloc returns freed
-memory to the system; here glibc's adaptive thresholds have settled and reuse it), and peak
+memory to the system; ``--malloc keep``, the default, sets it to keep freed memory as the commands
+do, :mod:`gbscan.heap`; ``--malloc system`` leaves glibc's adaptive thresholds), and peak
 memory in bytes per pixel, measured from a released fast-path workspace
 (``gbscan.decode.release_workspace``) so that it counts.  The stage names are decode's
 ``stats['ms']`` keys (on the fast path "input" is validation and the automatic blur's SNR,
@@ -162,6 +163,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", default="plane", choices=("plane", "head", "multi_object"))
     ap.add_argument("--preset", default="typical", choices=("clean", "typical", "hard"))
     ap.add_argument("--no-peers", action="store_true", help="decoder figures only (skip FTP and Gray code)")
+    ap.add_argument("--malloc", choices=("keep", "system"), default="keep",
+                    help="keep: freed memory reused as the gbscan commands and Scanner set it "
+                         "(gbscan.heap.keep_freed_memory, the default); system: glibc's adaptive thresholds")
     args = ap.parse_args(argv)
 
     import cv2
@@ -173,7 +177,13 @@ def main(argv=None) -> int:
     cv2.setNumThreads(args.threads)
     numba.set_num_threads(max(1, min(args.threads, numba.config.NUMBA_NUM_THREADS)))
     spec = PatternSpec()
-    print(f"# decoder benchmark, {args.scene} ({args.preset}), {args.threads} thread(s), median of {args.runs} runs (ms)")
+    kept = False
+    if args.malloc == "keep":
+        from gbscan.heap import keep_freed_memory
+
+        kept = keep_freed_memory()
+    print(f"# decoder benchmark, {args.scene} ({args.preset}), {args.threads} thread(s), median of {args.runs} runs (ms), "
+          f"malloc: {'freed memory kept (gbscan.heap)' if kept else 'glibc adaptive thresholds'}")
     for w in args.sizes:
         r = frames(w, args.scene, args.preset)
         img = r.image
