@@ -26,6 +26,7 @@ projector columns in projector px with boundary ``k`` at ``k * stripe_px - 0.5``
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 import json
@@ -422,7 +423,14 @@ def validate_image(image) -> np.ndarray:
 
 
 def gamma_lut(camera_gamma: float = 2.2) -> np.ndarray:
-    """(256,) float32 table: encoded value -> linear ``255 (v/255)**camera_gamma``."""
+    """(256,) float32 table: encoded value -> linear ``255 (v/255)**camera_gamma`` (a fresh copy)."""
+    return _lut(float(camera_gamma)).copy()
+
+
+@functools.lru_cache(maxsize=8)
+def _lut(camera_gamma: float) -> np.ndarray:
+    # gamma_lut's table, made once per gamma for the decoder's kernels (read only by them; the
+    # decoder asks for it up to four times a frame, ~50 us each)
     return (255.0 * (np.arange(256) / 255.0) ** float(camera_gamma)).astype(np.float32)
 
 
@@ -488,7 +496,7 @@ def auto_blur_sigma(image_rgb: np.ndarray, params: DecodeParams = DecodeParams()
     """
     from . import kernels
 
-    lut = gamma_lut(params.camera_gamma)
+    lut = _lut(float(params.camera_gamma))
     noise, mod, n = kernels.stripe_snr(image_rgb, lut, SNR_STEP[0], SNR_STEP[1], float(max(4.0 * params.dark_level, 1.0)))
     if n < 500 or mod <= 0:
         return FALLBACK_SIGMA_PX, 0.0
@@ -507,7 +515,7 @@ def frame_stripe_px(image_rgb: np.ndarray, params: DecodeParams = DecodeParams()
 
     img = validate_image(image_rgb)
     step = max(1, img.shape[0] // RUN_ROWS)
-    px, n = kernels.stripe_run_px(img, gamma_lut(params.camera_gamma), step, RUN_LEVEL,
+    px, n = kernels.stripe_run_px(img, _lut(float(params.camera_gamma)), step, RUN_LEVEL,
                                   float(max(4.0 * params.dark_level, 1.0)), 255, RUN_QUANTILE)
     return float(px), int(n)
 
@@ -526,8 +534,10 @@ def choose_resample(image_rgb: np.ndarray, params: DecodeParams = DecodeParams()
 
 
 @functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=8)
 def _encode_table(camera_gamma: float) -> np.ndarray:
-    # (65536,) uint8: the encoded value of linear 255 i / 65535 (the inverse of gamma_lut)
+    # (65536,) uint8: the encoded value of linear 255 i / 65535 (the inverse of gamma_lut); made
+    # once per gamma (read only)
     return np.round(255.0 * (np.arange(65536) / 65535.0) ** (1.0 / float(camera_gamma))).astype(np.uint8)
 
 
@@ -550,7 +560,10 @@ def shrink_frame(image_rgb: np.ndarray, factor: float, camera_gamma: float = 2.2
     if not 1.0 <= float(factor) <= MAX_RESAMPLE:
         raise GBError(f"shrink_frame: factor must be in [1, {MAX_RESAMPLE:g}], got {factor}")
     h, w = resample_size(img.shape, factor)
-    lin = kernels.linear_rgb(img, gamma_lut(camera_gamma), 0 if red else 1)
+    if 2 * h == img.shape[0] and 2 * w == img.shape[1]:   # exactly half: one fused pass, same values
+        return kernels.shrink2_rgb(img, _lut(float(camera_gamma)), _encode_table(float(camera_gamma)),
+                                   0 if red else 1)
+    lin = kernels.linear_rgb(img, _lut(float(camera_gamma)), 0 if red else 1)
     small = cv2.resize(lin, (w, h), interpolation=cv2.INTER_AREA).reshape(h, w, lin.shape[2])
     return kernels.encode_rgb(np.ascontiguousarray(small, dtype=np.float32), _encode_table(float(camera_gamma)))
 
@@ -604,10 +617,19 @@ def _gauss1d(sigma: float) -> np.ndarray:
     return (k / k.sum()).astype(np.float32)
 
 
+@functools.lru_cache(maxsize=32)
 def _gauss_half(sigma: float) -> np.ndarray:
-    """(r+1,) float32 half of :func:`_gauss1d` (centre first), for ``kernels.gauss_rows``."""
+    """(r+1,) float32 half of :func:`_gauss1d` (centre first), for ``kernels.gauss_rows`` (made
+    once per sigma: read only)."""
     k = _gauss1d(sigma)
     return np.ascontiguousarray(k[k.size // 2:])
+
+
+@functools.lru_cache(maxsize=32)
+def _with_sigma(params: "DecodeParams", sigma: float) -> "DecodeParams":
+    # params with the automatic blur's sigma filled in (validated once per params and sigma:
+    # the automatic sigma takes a few values; ~70 us a frame otherwise)
+    return dataclasses.replace(params, blur_sigma_along_px=sigma)
 
 
 def motion_kernel(sigma_along_px: float, sigma_across_px: float, angle_deg: float) -> np.ndarray:
@@ -961,7 +983,7 @@ def step_guard(image_rgb: np.ndarray, mask: np.ndarray, column: np.ndarray, stri
     from . import kernels
 
     reach = max(1, int(math.ceil(STEP_REACH_SIGMAS * _sigma_along(params))))
-    n = int(kernels.step_guard(np.ascontiguousarray(image_rgb), gamma_lut(params.camera_gamma), STEP_BOX_PX,
+    n = int(kernels.step_guard(np.ascontiguousarray(image_rgb), _lut(float(params.camera_gamma)), STEP_BOX_PX,
                                np.ascontiguousarray(region, dtype=np.int32), mask, column, stripe, confidence,
                                reach, np.float32(ratio), STEP_HALF_ROWS, np.float32(STEP_FLAT), OK, RIM))
     _unreported(counts, n, RIM)
@@ -1025,13 +1047,13 @@ def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: Patt
         return n_reg
     segs = un.segments
     if _REUSE_LINK_WORK:  # the same region image as paint_regions, in place (no fresh pages)
-        region = un.region
-        kernels.repaint_regions(segs.seg, lk.seg_region.astype(np.int32), region)
+        region, isolated = un.region, un.isolated
+        kernels.repaint_regions(segs.seg, lk.seg_region.astype(np.int32), region, isolated)
     else:
-        region, _ = kernels.paint_regions(segs.seg, segs.rel, lk.seg_region.astype(np.int32),
-                                          un.seg_P.astype(np.int32))
+        region, _, isolated = kernels.paint_regions(segs.seg, segs.rel, lk.seg_region.astype(np.int32),
+                                                    un.seg_P.astype(np.int32))
     un.region = region
-    un.isolated = (segs.seg >= 0) & (region < 0)
+    un.isolated = isolated
     if memo is not None:
         # rows of the segments whose region or region offset the linking changed (the rim rule's
         # inputs differ only there)
@@ -1235,7 +1257,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     snr = None
     if params.blur_sigma_along_px is None:  # automatic: from this frame's stripe SNR
         sigma, snr = auto_blur_sigma(img, params)
-        params = dataclasses.replace(params, blur_sigma_along_px=sigma)
+        params = _with_sigma(params, float(sigma))
     dark_why = ("image is dark: no projected light seen "
                 f"(green/blue never reach dark_level={params.dark_level:g} linear DN)")
     if fast_path(params, keep_stages):
@@ -1243,7 +1265,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         # (linearise, blur, classify; rows in rings, a per-thread workspace reused from frame to
         # frame like the other scratch).  ms: "blur" the samples, "classify" the row pass.
         ws = _workspace(H, W)
-        lut = gamma_lut(params.camera_gamma)
+        lut = _lut(float(params.camera_gamma))
         kh = _gauss_half(params.blur_sigma_along_px)
         thr_w = _threshold_window(params)
         t = time.perf_counter()
@@ -1400,8 +1422,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     stats.update(un.stats)
     stats["regions_indexed"] = int(idx.indexed.sum())
     stats["regions_unindexed"] = int(n_reg - idx.indexed.sum())
-    stats["region_why"] = {k: int(v) for k, v in zip(*np.unique(np.array(idx.why, dtype=object).astype(str),
-                                                                  return_counts=True))} if n_reg else {}
+    stats["region_why"] = dict(sorted(collections.Counter(str(w) for w in idx.why).items())) if n_reg else {}
     stats["boundaries"] = int(np.isfinite(jx).sum())
     stats["weld_retry_px"] = int(un.stats.get("weld_retry_px", 0))
     # of the "rim" pixels: masked by the guard rows (rim_guard) and by the brightness-step guard

@@ -2630,29 +2630,35 @@ def region_offset_cover(region, relative, stripe_lo, stripe_hi, rmin, rmax, n_st
 
 @njit(cache=True, nogil=True)
 def paint_regions(seg, rel, seg_region, seg_P):
-    """Per pixel: region id of its segment (-1) and relative index ``rel + P[segment]``."""
+    """Per pixel: region id of its segment (-1), relative index ``rel + P[segment]`` (0 outside
+    segments) and whether it is *isolated*: in a segment of no region (bool)."""
     H, W = seg.shape
     region = np.full((H, W), -1, np.int32)
     relative = np.zeros((H, W), np.int32)
+    isolated = np.zeros((H, W), np.bool_)
     for v in range(H):
         for u in range(W):
             s = seg[v, u]
             if s >= 0:
-                region[v, u] = seg_region[s]
+                k = seg_region[s]
+                region[v, u] = k
                 relative[v, u] = rel[v, u] + seg_P[s]
-    return region, relative
+                isolated[v, u] = k < 0
+    return region, relative, isolated
 
 
 @njit(cache=True, nogil=True)
-def repaint_regions(seg, seg_region, region):
-    """In place: ``region`` (H, W) int32 becomes the region image of :func:`paint_regions`
-    (``seg_region[seg]``, -1 where ``seg < 0``) without allocating (the decoder's linking
-    repaints after giving components regions)."""
+def repaint_regions(seg, seg_region, region, isolated):
+    """In place: ``region`` (H, W) int32 and ``isolated`` (H, W) bool become the region image and
+    the isolated flags of :func:`paint_regions` (``seg_region[seg]``, -1 where ``seg < 0``)
+    without allocating (the decoder's linking repaints after giving components regions)."""
     H, W = seg.shape
     for v in range(H):
         for u in range(W):
             s = seg[v, u]
-            region[v, u] = seg_region[s] if s >= 0 else -1
+            k = seg_region[s] if s >= 0 else -1
+            region[v, u] = k
+            isolated[v, u] = (s >= 0) & (k < 0)
 
 
 @njit(cache=True, nogil=True)
@@ -4026,6 +4032,31 @@ def linear_rgb(img, lut, first):
             for u in range(W):
                 for c in range(n):
                     o[u, c] = lut[px[u, first + c]]
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def shrink2_rgb(img, lut, enc, first):
+    """:func:`linear_rgb`, ``cv2.resize(..., INTER_AREA)`` to exactly half the size and
+    :func:`encode_rgb` in one pass: (H/2, W/2, 3) uint8 (H, W even; channels before ``first`` 0).
+    The mean of a 2x2 block is OpenCV's, value for value: ``(((a + b) + c) + d) * 0.25`` in
+    float32, ``a b`` the block's upper pixels (its fast path for an exact half; checked against
+    cv2 by the tests).  2.7 -> 0.7 ms at 1280x1024 against the three steps."""
+    H, W = img.shape[0], img.shape[1]
+    h = H // 2
+    w = W // 2
+    out = np.zeros((h, w, 3), np.uint8)
+    scale = (enc.size - 1) / 255.0
+    top = enc.size - 1
+    q = np.float32(0.25)
+    for i in range(h):
+        p0 = img[2 * i]
+        p1 = img[2 * i + 1]
+        o = out[i]
+        for c in range(first, 3):   # a channel at a time (the loop over j then has no inner loop)
+            for j in range(w):
+                m = (((lut[p0[2 * j, c]] + lut[p0[2 * j + 1, c]]) + lut[p1[2 * j, c]]) + lut[p1[2 * j + 1, c]]) * q
+                o[j, c] = enc[min(max(int(m * scale + 0.5), 0), top)]
     return out
 
 

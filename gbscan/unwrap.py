@@ -721,9 +721,9 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
     region_of_root = np.full(segs.n, -1, np.int32)
     region_of_root[kept] = np.arange(int(kept.sum()), dtype=np.int32)
     seg_region = region_of_root[root] if segs.n else np.zeros(0, np.int32)
-    region, relative = kernels.paint_regions(segs.seg, segs.rel, seg_region.astype(np.int32), P.astype(np.int32))
+    region, relative, isolated = kernels.paint_regions(segs.seg, segs.rel, seg_region.astype(np.int32),
+                                                       P.astype(np.int32))
     incons = check_pixels(labels, relative, region)                      # 7
-    isolated = (segs.seg >= 0) & (region < 0)
     n_reg = int(kept.sum())
     region_px = np.bincount(seg_region[seg_region >= 0], weights=seg_px[seg_region >= 0],
                             minlength=n_reg).astype(np.int64)
@@ -737,7 +737,7 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
         "regions_kept": n_reg,
         "regions_too_small": int((found & ~kept).sum()),
         "conflicts": int(conflicts.sum() // 2),
-        "pixels_inconsistent": int(incons.sum()),
+        "pixels_inconsistent": int(np.count_nonzero(incons)),
     }
     return Unwrapped(relative, region, incons, segs, edges, seg_region, P, region_px,
                      root_conf[kept].astype(np.int64) // 2 if segs.n else np.zeros(0, np.int64), bel, isolated, stats,

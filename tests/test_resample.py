@@ -172,6 +172,28 @@ def test_shrink_frame_is_a_linear_light_mean():
         shrink_frame(flat, 0.5)
 
 
+@pytest.mark.parametrize("gamma", [1.0, 2.2])
+@pytest.mark.parametrize("red", [True, False])
+def test_halving_in_one_pass_equals_opencv_area_mean(gamma, red):
+    """An exact half (even sides) is shrunk by one fused kernel (kernels.shrink2_rgb); it must
+    give what the three steps give (linearise, cv2.INTER_AREA, encode), value for value -- also
+    on the sides that are not even, which take the three steps themselves."""
+    import cv2
+
+    from gbscan import kernels
+    from gbscan.decode import _encode_table, _lut
+
+    rng = np.random.default_rng(7)
+    for H, W in ((48, 64), (50, 70), (51, 70)):
+        img = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+        h, w = resample_size(img.shape, 2.0)
+        lin = kernels.linear_rgb(img, _lut(gamma), 0 if red else 1)
+        small = cv2.resize(lin, (w, h), interpolation=cv2.INTER_AREA).reshape(h, w, lin.shape[2])
+        want = kernels.encode_rgb(np.ascontiguousarray(small, dtype=np.float32), _encode_table(gamma))
+        np.testing.assert_array_equal(shrink_frame(img, 2.0, gamma, red=red), want)
+    assert kernels.shrink2_rgb(img[:50, :70], _lut(gamma), _encode_table(gamma), 0 if red else 1).shape == (25, 35, 3)
+
+
 @pytest.mark.parametrize("bad", [-1.0, 0.5, 9.0, True, "2"])
 def test_resample_parameter_is_checked(bad):
     with pytest.raises(GBError, match="resample"):
