@@ -1046,12 +1046,23 @@ def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: Patt
     if not lk.stats["components_linked"]:
         return n_reg
     segs = un.segments
-    if _REUSE_LINK_WORK:  # the same region image as paint_regions, in place (no fresh pages)
+    moved = np.flatnonzero(lk.seg_region != un.seg_region).astype(np.int64)   # segments given a region
+    if _REUSE_LINK_WORK:
+        # the region image and the step-7 flags of paint_regions / check_pixels, in place and only
+        # where the linking moved segments (their rows and those beside them)
         region, isolated = un.region, un.isolated
-        kernels.repaint_regions(segs.seg, lk.seg_region.astype(np.int32), region, isolated)
+        kernels.repaint_segments(segs.seg, segs.row, segs.u0, segs.u1, moved, lk.seg_region.astype(np.int32),
+                                 region, isolated)
+        near = np.zeros(region.shape[0] + 2, bool)   # near[v + 1]: row v is a moved segment's or beside one
+        r = segs.row[moved]
+        near[r] = near[r + 1] = near[r + 2] = True
+        kernels.check_vertical_rows(np.ascontiguousarray(cls.labels, dtype=np.uint8), un.relative, region,
+                                    np.flatnonzero(near[1:-1]).astype(np.int64), un.inconsistent)
+        inconsistent = un.inconsistent
     else:
         region, _, isolated = kernels.paint_regions(segs.seg, segs.rel, lk.seg_region.astype(np.int32),
                                                     un.seg_P.astype(np.int32))
+        inconsistent = uw.check_pixels(cls.labels, un.relative, region)
     un.region = region
     un.isolated = isolated
     if memo is not None:
@@ -1060,7 +1071,7 @@ def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: Patt
         linked_seg = (lk.seg_region >= 0) & lk.linked[np.maximum(lk.seg_region, 0)]
         memo["changed_rows"] = np.unique(segs.row[(lk.seg_region != un.seg_region) | linked_seg])
     un.seg_region = lk.seg_region
-    un.inconsistent = uw.check_pixels(cls.labels, un.relative, region)
+    un.inconsistent = inconsistent
     n_new = int(lk.offset.size)
     ext = n_new - n_reg
     votes = np.maximum(lk.votes + lk.dissent, 1)

@@ -2663,6 +2663,40 @@ def repaint_regions(seg, seg_region, region, isolated):
 
 
 @njit(cache=True, nogil=True)
+def repaint_segments(seg, seg_row, seg_u0, seg_u1, which, seg_region, region, isolated):
+    """:func:`repaint_regions` for the segments ``which`` (int array) only, in place: where the
+    others' regions did not change, their pixels already hold what a full repaint would write."""
+    for i in range(which.size):
+        s = which[i]
+        v = seg_row[s]
+        k = seg_region[s]
+        for u in range(seg_u0[s], seg_u1[s] + 1):
+            if seg[v, u] == s:
+                region[v, u] = k
+                isolated[v, u] = k < 0
+
+
+@njit(cache=True, nogil=True)
+def check_vertical_rows(labels, relative, region, rows, bad):
+    """:func:`check_vertical`'s flags of the rows ``rows`` (int array) recomputed in place in
+    ``bad``: a row's flags depend on it and its two neighbours only."""
+    H, W = labels.shape
+    for i in range(rows.size):
+        v = rows[i]
+        b = bad[v]
+        for u in range(W):
+            b[u] = False
+        la, ka, ra = labels[v], region[v], relative[v]
+        for w in (v - 1, v + 1):
+            if w < 0 or w >= H:
+                continue
+            lb, kb, rb = labels[w], region[w], relative[w]
+            for u in range(W):
+                c = (la[u] != 0) & (ka[u] >= 0) & (lb[u] == la[u]) & (kb[u] == ka[u]) & (ra[u] != rb[u])
+                b[u] = b[u] | c
+
+
+@njit(cache=True, nogil=True)
 def count_codes(mask, n_codes):
     """Histogram of a uint8 code image (n_codes bins)."""
     out = np.zeros(n_codes, np.int64)

@@ -1032,3 +1032,41 @@ def test_unroll_rows_drops_a_one_pixel_flank_between_a_marker_and_the_dark():
     assert s.n == 1 and s.u0[0] == 3
     # and without the flank pass at all (marker_flank_px=0) nothing changes
     assert uw.unroll_rows(lab, marker_flank_px=0).n == 2
+
+
+def test_partial_repaint_and_step7_rows_equal_the_full_passes():
+    """After the linking gives some segments a region, the decoder repaints only those segments
+    (kernels.repaint_segments) and recomputes step 7 only on their rows and the rows beside them
+    (kernels.check_vertical_rows); both must equal the full passes."""
+    from gbscan import kernels
+
+    rng = np.random.default_rng(11)
+    H, W = 40, 60
+    labels = rng.choice(np.array([0, 1, 1, 2, 2, 3], np.uint8), size=(H, W))
+    labels = np.repeat(labels[:, ::3], 3, axis=1)[:, :W].copy()          # runs a few pixels long
+    labels[rng.random((H, W)) < 0.05] = 0
+    segs = kernels.row_segments(labels, 1, 1, 2, True)
+    seg, rel, seg_row, seg_u0, seg_u1 = segs[0], segs[1], segs[2], segs[3], segs[4]
+    n = seg_row.size
+    old = rng.integers(-1, 4, n).astype(np.int32)
+    region = np.empty((H, W), np.int32)
+    isolated = np.empty((H, W), bool)
+    kernels.repaint_regions(seg, old, region, isolated)
+    relative = np.where(seg >= 0, rel, 0).astype(np.int32)
+    relative[rng.random((H, W)) < 0.1] += 2                               # some inconsistent pixels
+    bad = kernels.check_vertical(labels, relative, region)
+    new = old.copy()
+    moved = np.flatnonzero(rng.random(n) < 0.2)
+    new[moved] = rng.integers(-1, 4, moved.size)
+    kernels.repaint_segments(seg, seg_row, seg_u0, seg_u1, moved.astype(np.int64), new, region, isolated)
+    want_region = np.empty_like(region)
+    want_isolated = np.empty_like(isolated)
+    kernels.repaint_regions(seg, new, want_region, want_isolated)
+    np.testing.assert_array_equal(region, want_region)
+    np.testing.assert_array_equal(isolated, want_isolated)
+    rows = np.unique(np.clip(seg_row[moved][:, None] + np.arange(-1, 2), 0, H - 1)).astype(np.int64)
+    before = bad.copy()
+    kernels.check_vertical_rows(labels, relative, region, rows, bad)
+    want = kernels.check_vertical(labels, relative, region)
+    assert (want != before).any()   # the moved segments changed flags: the rows had work to do
+    np.testing.assert_array_equal(bad, want)
