@@ -534,10 +534,8 @@ def choose_resample(image_rgb: np.ndarray, params: DecodeParams = DecodeParams()
 
 
 @functools.lru_cache(maxsize=8)
-@functools.lru_cache(maxsize=8)
 def _encode_table(camera_gamma: float) -> np.ndarray:
-    # (65536,) uint8: the encoded value of linear 255 i / 65535 (the inverse of gamma_lut); made
-    # once per gamma (read only)
+    # (65536,) uint8: the encoded value of linear 255 i / 65535 (the inverse of gamma_lut)
     return np.round(255.0 * (np.arange(65536) / 65535.0) ** (1.0 / float(camera_gamma))).astype(np.uint8)
 
 
@@ -1046,7 +1044,8 @@ def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: Patt
     if not lk.stats["components_linked"]:
         return n_reg
     segs = un.segments
-    moved = np.flatnonzero(lk.seg_region != un.seg_region).astype(np.int64)   # segments given a region
+    changed = lk.seg_region != un.seg_region   # segments given a region (or another one)
+    moved = np.flatnonzero(changed).astype(np.int64)
     if _REUSE_LINK_WORK:
         # the region image and the step-7 flags of paint_regions / check_pixels, in place and only
         # where the linking moved segments (their rows and those beside them)
@@ -1069,7 +1068,7 @@ def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: Patt
         # rows of the segments whose region or region offset the linking changed (the rim rule's
         # inputs differ only there)
         linked_seg = (lk.seg_region >= 0) & lk.linked[np.maximum(lk.seg_region, 0)]
-        memo["changed_rows"] = np.unique(segs.row[(lk.seg_region != un.seg_region) | linked_seg])
+        memo["changed_rows"] = np.unique(segs.row[changed | linked_seg])
     un.seg_region = lk.seg_region
     un.inconsistent = inconsistent
     n_new = int(lk.offset.size)

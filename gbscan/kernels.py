@@ -40,6 +40,17 @@ def run_starts(row, rs):
 
 
 @njit(cache=True, nogil=True)
+def _merges(rs, re, rl, left, i, gaps, limit_px):
+    # _merge_runs_pass' test: candidate run i merges with its left neighbour (run ``left``, final
+    # so far) and run i + 1 (branch-free: the operands are all in hand)
+    if gaps:
+        merge = rl[i] == NONE
+    else:
+        merge = (rl[i] != NONE) & (re[left] + 1 == rs[i]) & (re[i] + 1 == rs[i + 1])
+    return merge & (re[i] - rs[i] + 1 <= limit_px) & (rl[left] != NONE) & (rl[left] == rl[i + 1])
+
+
+@njit(cache=True, nogil=True)
 def _merge_runs_pass(rs, re, rl, nr, gaps, limit_px):
     """One left-to-right merging pass of :func:`row_segments` over the runs ``0 .. nr-1`` of a row
     (in place; returns the new count).  ``gaps`` False (spikes): a coloured run of at most
@@ -51,26 +62,15 @@ def _merge_runs_pass(rs, re, rl, nr, gaps, limit_px):
     plane)."""
     if nr < 3:
         return nr
-    # the first candidate that merges with its untouched neighbours (branch-free tests; none:
-    # nothing to do)
+    # the first candidate that merges with its untouched neighbours (none: nothing to do)
     i = 1
-    while i < nr - 1:
-        if gaps:
-            merge = rl[i] == NONE
-        else:
-            merge = (rl[i] != NONE) & (re[i - 1] + 1 == rs[i]) & (re[i] + 1 == rs[i + 1])
-        if merge & (re[i] - rs[i] + 1 <= limit_px) & (rl[i - 1] != NONE) & (rl[i - 1] == rl[i + 1]):
-            break
+    while i < nr - 1 and not _merges(rs, re, rl, i - 1, i, gaps, limit_px):
         i += 1
     if i >= nr - 1:
         return nr
     m = i          # runs 0 .. m-1 are final; run i is the candidate, i + 1 its right neighbour
     while i < nr - 1:
-        if gaps:
-            merge = rl[i] == NONE
-        else:
-            merge = rl[i] != NONE and re[m - 1] + 1 == rs[i] and re[i] + 1 == rs[i + 1]
-        if (merge and re[i] - rs[i] + 1 <= limit_px and rl[m - 1] != NONE and rl[m - 1] == rl[i + 1]):
+        if _merges(rs, re, rl, m - 1, i, gaps, limit_px):
             re[m - 1] = re[i + 1]      # merge m-1, i, i+1
             i += 2
         else:
@@ -2649,23 +2649,11 @@ def paint_regions(seg, rel, seg_region, seg_P):
 
 
 @njit(cache=True, nogil=True)
-def repaint_regions(seg, seg_region, region, isolated):
-    """In place: ``region`` (H, W) int32 and ``isolated`` (H, W) bool become the region image and
-    the isolated flags of :func:`paint_regions` (``seg_region[seg]``, -1 where ``seg < 0``)
-    without allocating (the decoder's linking repaints after giving components regions)."""
-    H, W = seg.shape
-    for v in range(H):
-        for u in range(W):
-            s = seg[v, u]
-            k = seg_region[s] if s >= 0 else -1
-            region[v, u] = k
-            isolated[v, u] = (s >= 0) & (k < 0)
-
-
-@njit(cache=True, nogil=True)
 def repaint_segments(seg, seg_row, seg_u0, seg_u1, which, seg_region, region, isolated):
-    """:func:`repaint_regions` for the segments ``which`` (int array) only, in place: where the
-    others' regions did not change, their pixels already hold what a full repaint would write."""
+    """In place: ``region`` (H, W) int32 and ``isolated`` (H, W) bool become what
+    :func:`paint_regions` makes of ``seg_region``, rewriting only the pixels of the segments
+    ``which`` (int array): the others' regions are as the images were painted (the decoder's
+    linking gives a few segments a region)."""
     for i in range(which.size):
         s = which[i]
         v = seg_row[s]
@@ -2692,8 +2680,7 @@ def check_vertical_rows(labels, relative, region, rows, bad):
                 continue
             lb, kb, rb = labels[w], region[w], relative[w]
             for u in range(W):
-                c = (la[u] != 0) & (ka[u] >= 0) & (lb[u] == la[u]) & (kb[u] == ka[u]) & (ra[u] != rb[u])
-                b[u] = b[u] | c
+                b[u] = b[u] | _clash(la, ka, ra, lb, kb, rb, u)
 
 
 @njit(cache=True, nogil=True)
@@ -2752,10 +2739,17 @@ def check_vertical(labels, relative, region):
         ra, rb = relative[v], relative[v - 1]
         ba, bb = bad[v], bad[v - 1]
         for u in range(W):
-            c = (la[u] != 0) & (ka[u] >= 0) & (lb[u] == la[u]) & (kb[u] == ka[u]) & (ra[u] != rb[u])
+            c = _clash(la, ka, ra, lb, kb, rb, u)
             ba[u] = ba[u] | c
             bb[u] = bb[u] | c
     return bad
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _clash(la, ka, ra, lb, kb, rb, u):
+    # step 7's test of one vertical pair at column u (rows a, b: labels, regions, relative
+    # indices): the same colour (not NONE) and region (>= 0) but another index
+    return (la[u] != 0) & (ka[u] >= 0) & (lb[u] == la[u]) & (kb[u] == ka[u]) & (ra[u] != rb[u])
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -4071,6 +4065,12 @@ def linear_rgb(img, lut, first):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _encoded(x, enc, scale, top):
+    # the encoded value of linear x through the table of encode_rgb (scale = (enc.size - 1) / 255)
+    return enc[min(max(int(x * scale + 0.5), 0), top)]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def shrink2_rgb(img, lut, enc, first):
     """:func:`linear_rgb`, ``cv2.resize(..., INTER_AREA)`` to exactly half the size and
     :func:`encode_rgb` in one pass: (H/2, W/2, 3) uint8 (H, W even; channels before ``first`` 0).
@@ -4091,7 +4091,7 @@ def shrink2_rgb(img, lut, enc, first):
         for c in range(first, 3):   # a channel at a time (the loop over j then has no inner loop)
             for j in range(w):
                 m = (((lut[p0[2 * j, c]] + lut[p0[2 * j + 1, c]]) + lut[p1[2 * j, c]]) + lut[p1[2 * j + 1, c]]) * q
-                o[j, c] = enc[min(max(int(m * scale + 0.5), 0), top)]
+                o[j, c] = _encoded(m, enc, scale, top)
     return out
 
 
@@ -4108,12 +4108,12 @@ def encode_rgb(lin, enc):
         o = out[v]
         if n == 2:   # green and blue spelt out (as linear_rgb)
             for u in range(W):
-                o[u, 1] = enc[min(max(int(li[u, 0] * scale + 0.5), 0), top)]
-                o[u, 2] = enc[min(max(int(li[u, 1] * scale + 0.5), 0), top)]
+                o[u, 1] = _encoded(li[u, 0], enc, scale, top)
+                o[u, 2] = _encoded(li[u, 1], enc, scale, top)
         else:
             for u in range(W):
                 for c in range(n):
-                    o[u, 3 - n + c] = enc[min(max(int(li[u, c] * scale + 0.5), 0), top)]
+                    o[u, 3 - n + c] = _encoded(li[u, c], enc, scale, top)
     return out
 
 

@@ -1049,9 +1049,8 @@ def test_partial_repaint_and_step7_rows_equal_the_full_passes():
     seg, rel, seg_row, seg_u0, seg_u1 = segs[0], segs[1], segs[2], segs[3], segs[4]
     n = seg_row.size
     old = rng.integers(-1, 4, n).astype(np.int32)
-    region = np.empty((H, W), np.int32)
-    isolated = np.empty((H, W), bool)
-    kernels.repaint_regions(seg, old, region, isolated)
+    P = np.zeros(n, np.int32)
+    region, _, isolated = kernels.paint_regions(seg, rel, old, P)
     relative = np.where(seg >= 0, rel, 0).astype(np.int32)
     relative[rng.random((H, W)) < 0.1] += 2                               # some inconsistent pixels
     bad = kernels.check_vertical(labels, relative, region)
@@ -1059,9 +1058,7 @@ def test_partial_repaint_and_step7_rows_equal_the_full_passes():
     moved = np.flatnonzero(rng.random(n) < 0.2)
     new[moved] = rng.integers(-1, 4, moved.size)
     kernels.repaint_segments(seg, seg_row, seg_u0, seg_u1, moved.astype(np.int64), new, region, isolated)
-    want_region = np.empty_like(region)
-    want_isolated = np.empty_like(isolated)
-    kernels.repaint_regions(seg, new, want_region, want_isolated)
+    want_region, _, want_isolated = kernels.paint_regions(seg, rel, new, P)
     np.testing.assert_array_equal(region, want_region)
     np.testing.assert_array_equal(isolated, want_isolated)
     rows = np.unique(np.clip(seg_row[moved][:, None] + np.arange(-1, 2), 0, H - 1)).astype(np.int64)
