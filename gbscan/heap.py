@@ -6,10 +6,9 @@ fresh pages from the kernel and gives freed memory at the top of the heap back o
 *trim threshold* is free.  Both thresholds adapt to the blocks a process has freed so far, so
 whether the next frame's arrays land on pages the process already has, or on fresh ones that
 fault in one by one when first written (about 2 us a 4 KiB page on this machine), depends on the
-process's history: measured in one process, a 1280x960 decode took 43.6 ms with 10 747 page faults
-a frame against 23.5 ms and none with the settings below (``scripts/bench_decode.py`` reports the
-faults per frame); scanning 1280x960 and 640x480 frames in turn, a 1280x960 scan took 63.6 against
-48.4 ms, with about 8 000 faults a pair of frames.
+process's history.  ``scripts/bench_heap.py`` scans 1280x960 and 640x480 frames in turn, with and
+without the settings below: a 1280x960 scan of the head took 65.4 against 43.5 ms (9 591 page
+faults a round against 23).
 
 :func:`keep_freed_memory` fixes both thresholds: blocks up to 32 MiB (glibc's largest mmap
 threshold on 64-bit) come from the heap, and up to 512 MiB of freed heap stay in the process.
