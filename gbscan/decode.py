@@ -353,6 +353,10 @@ class StripeMap:
     labels : (H, W) uint8 colour class (NONE/GREEN/BLUE/CYAN).
     stats : counts per reason, regions found/indexed/dropped, per-stage milliseconds.
     stages : intermediate images (only when ``decode(..., keep_stages=True)``).
+
+    A frame decoded resampled (``DecodeParams.resample``) expands ``relative``, ``region``,
+    ``labels`` and ``column_relative`` to its pixels when one of them is first read (a scan reads
+    none of them): the same values, computed later (:class:`_Deferred`).
     """
 
     column: np.ndarray
@@ -381,6 +385,52 @@ class StripeMap:
             "pattern": np.array(json.dumps(self.pattern.to_dict())),
             "stats": np.array(json.dumps(self.stats, default=_json_default)),
         }
+
+
+class _Deferred:
+    """The maps of a resampled decode that a scan does not read (``relative``, ``region``,
+    ``labels``, ``column_relative``: 13 of the 26 bytes a pixel the eight maps take), expanded to the
+    frame's pixels when a StripeMap first reads one of them (:func:`gbscan.kernels.upsample_maps`,
+    all four at once).  It holds the coarse decode's own arrays, so the result does not depend on
+    what is done to the StripeMap's arrays meanwhile, and a StripeMap pickles with the small
+    arrays."""
+
+    def __init__(self, args: tuple):
+        self.args = args
+        self.maps: dict | None = None
+
+    def get(self, name: str) -> np.ndarray:
+        if self.maps is None:
+            from . import kernels
+
+            rel, reg, lab, crel = kernels.upsample_maps(*self.args)
+            self.maps = {"relative": rel, "region": reg, "labels": lab, "column_relative": crel}
+            self.args = ()
+        return self.maps[name]
+
+
+class _DeferredField:
+    """A StripeMap field that may hold a :class:`_Deferred`: read, it is replaced by its array."""
+
+    def __init__(self, name: str, default=None):
+        self.name, self.default = name, default
+
+    def __get__(self, obj, owner=None):
+        if obj is None:
+            return self.default
+        value = obj.__dict__.get(self.name, self.default)
+        if isinstance(value, _Deferred):
+            value = obj.__dict__[self.name] = value.get(self.name)
+        return value
+
+    def __set__(self, obj, value) -> None:
+        obj.__dict__[self.name] = value
+
+
+# (after the dataclass has taken the fields and column_relative's default from the class)
+for _name in ("relative", "region", "labels", "column_relative"):
+    setattr(StripeMap, _name, _DeferredField(_name))
+del _name
 
 
 def _json_default(x):
@@ -588,10 +638,12 @@ def _decode_resampled(img, factor: float, stripe_px_frame: float, pattern: Patte
     sm = decode(small, pattern, dataclasses.replace(params, resample=1.0), keep_stages=keep_stages, stripe_range=sr)
     t2 = time.perf_counter()
     H, W = img.shape[:2]
+    column, stripe, conf, mask, counts = kernels.upsample_stripes(
+        H, W, sm.column, sm.stripe, sm.confidence, sm.mask, sm.region, float(pattern.stripe_px), NO_BOUNDARY, RIM)
     crel = sm.column_relative if sm.column_relative is not None else np.full((h, w), np.nan, np.float32)
-    column, stripe, conf, mask, relative, region, labels, column_rel, counts = kernels.upsample_stripes(
-        H, W, sm.column, sm.stripe, sm.confidence, sm.mask, sm.relative, sm.region, sm.labels,
-        np.ascontiguousarray(crel, dtype=np.float32), float(pattern.stripe_px), NO_BOUNDARY, RIM)
+    # relative, region, labels, column_relative: expanded when first read (a scan never does)
+    later = _Deferred((H, W, sm.column, sm.stripe, sm.mask, sm.relative, sm.region, sm.labels,
+                       np.ascontiguousarray(crel, dtype=np.float32), float(pattern.stripe_px), NO_BOUNDARY, RIM))
     t3 = time.perf_counter()
     stats = dict(sm.stats)
     stats.update(_reason_stats(counts[:len(REASONS)]))
@@ -603,7 +655,7 @@ def _decode_resampled(img, factor: float, stripe_px_frame: float, pattern: Patte
     stats["decoded_size"] = [int(w), int(h)]
     if math.isfinite(stripe_px_frame):
         stats["stripe_camera_px"] = round(float(stripe_px_frame), 2)
-    return StripeMap(column, stripe, conf, mask, relative, region, labels, stats, pattern, sm.stages, column_rel)
+    return StripeMap(column, stripe, conf, mask, later, later, later, stats, pattern, sm.stages, later)
 
 
 def _gauss1d(sigma: float) -> np.ndarray:

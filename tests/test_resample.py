@@ -134,23 +134,67 @@ def test_upsample_exact_on_a_linear_column():
     col[mask != 0] = np.nan
     stripe = np.where(mask == 0, np.floor((col + 0.5) / 8.0), -1).astype(np.int32)
     ones = np.ones((h, w), np.float32)
-    out = kernels.upsample_stripes(H, W, col, stripe, ones, mask, stripe.copy(), region,
-                                   np.ones((h, w), np.uint8), col.copy(), 8.0, NO_BOUNDARY, RIM)
-    c_full, s_full, conf, m_full = out[0], out[1], out[2], out[3]
+    c_full, s_full, conf, m_full, counts = kernels.upsample_stripes(H, W, col, stripe, ones, mask, region, 8.0,
+                                                                   NO_BOUNDARY, RIM)
+    rel_full, reg_full, lab_full, crel_full = kernels.upsample_maps(H, W, col, stripe, mask, stripe.copy(), region,
+                                                                    np.ones((h, w), np.uint8), col.copy(), 8.0,
+                                                                    NO_BOUNDARY, RIM)
     vv, uu = np.mgrid[0:H, 0:W].astype(np.float64)
     want = 100.0 + 0.9 * uu + 0.05 * vv
     ok = m_full == 0
     assert ok.sum() > 0.75 * H * W * 25 / 30
     np.testing.assert_allclose(c_full[ok], want[ok], atol=2e-4)
-    np.testing.assert_allclose(out[7][ok], want[ok], atol=2e-4)       # column_relative alike
+    np.testing.assert_allclose(crel_full[ok], want[ok], atol=2e-4)    # column_relative alike
+    assert (rel_full[ok] == s_full[ok]).all()                          # relative moves with the stripe
+    assert (reg_full[ok] == 0).all() and (lab_full == 1).all()
     assert (s_full[ok] == np.floor((c_full[ok] + 0.5) / 8.0)).all() and (conf[ok] == 1).all()
     # towards the dark columns: the pixels past the last decoded centre are masked rim
     x_last = (24 + 0.5) * W / w - 0.5
     right = (uu > x_last + 0.2 * W / w) & (uu < (24.5 + 0.5) * W / w - 0.5)
     assert right.any() and (m_full[right] == RIM).all()
     assert (m_full[uu > (25 + 0.5) * W / w - 0.5 + 1] == 1).all()     # the dark keeps its reason
-    counts = out[8]
     assert counts.sum() == H * W and counts[0] == ok.sum()
+
+
+def test_other_maps_are_expanded_when_first_read(wide):
+    """A resampled decode expands relative / region / labels / column_relative only when one is
+    read (a scan reads none): the nearest coarse pixel's region and label, its relative index moved
+    with the expanded stripe where reported; the same after the StripeMap's own arrays were
+    edited, and through a pickle (batch workers send StripeMaps)."""
+    import pickle
+
+    from gbscan.decode import _Deferred
+
+    sm = decode(wide.image, SPEC)
+    assert sm.stats["resample"] == 2.0
+    lazy = ("relative", "region", "labels", "column_relative")
+    assert all(isinstance(sm.__dict__[k], _Deferred) for k in lazy)
+    twin = pickle.loads(pickle.dumps(sm))
+    fresh = decode(wide.image, SPEC)
+    sm.mask[:] = 0                      # edits before the first read change nothing
+    sm.stripe[:] = -7
+    H, W = sm.column.shape
+    small = decode(shrink_frame(wide.image, 2.0, red=False), SPEC, DecodeParams(resample=1.0))
+    h, w = small.column.shape
+    # nearest coarse pixel of each full pixel (an exact half: full pixel u -> u // 2)
+    near = (np.arange(H)[:, None] * h // H, np.arange(W)[None, :] * w // W)
+    np.testing.assert_array_equal(sm.region, small.region[near])
+    np.testing.assert_array_equal(sm.labels, small.labels[near])
+    ok = fresh.valid
+    moved = fresh.stripe - small.stripe[near]
+    np.testing.assert_array_equal(sm.relative[ok], (small.relative[near] + moved)[ok])
+    np.testing.assert_array_equal(sm.relative[~ok], small.relative[near][~ok])
+    crel = sm.column_relative
+    assert np.isfinite(crel[ok]).mean() > 0.99
+    # column_relative is the column less the region's offset (a multiple of two stripes), to the
+    # last bits but where its own slopes differ (neighbours reported or not): within 0.8 px
+    off = (fresh.column - crel)[ok & np.isfinite(crel)] / (2 * SPEC.stripe_px)
+    assert (np.abs(off - np.round(off)) < 1e-3).mean() > 0.99
+    np.testing.assert_allclose(off, np.round(off), atol=0.05)
+    assert all(not isinstance(sm.__dict__[k], _Deferred) for k in lazy)
+    for k in lazy:
+        np.testing.assert_array_equal(getattr(twin, k), getattr(sm, k))
+        np.testing.assert_array_equal(getattr(fresh, k), getattr(sm, k))
 
 
 def test_shrink_frame_is_a_linear_light_mean():
