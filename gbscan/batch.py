@@ -1070,9 +1070,10 @@ def _temporal_scan(scanner, scan, prior):
     if sm is None or stripe is None:
         return scan, None, {}
     own = TemporalState(stripe, np.where(sm.valid, sm.column, np.nan).astype(np.float32))
-    col_rel = getattr(sm, "column_relative", None)
     unindexed = sm.mask == UNINDEXED
-    if prior is None or col_rel is None or not unindexed.any():
+    # (read only when needed: a frame decoded shrunk expands the relative maps on first read)
+    col_rel = getattr(sm, "column_relative", None) if prior is not None and unindexed.any() else None
+    if col_rel is None:
         return scan, own, {"temporal_px": 0}
     if not isinstance(prior, TemporalState):
         raise GBError(f"temporal prior must be a TemporalState, got {type(prior).__name__}")
