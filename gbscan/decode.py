@@ -874,9 +874,8 @@ def subpixel_boundaries(cls: Classified, segs) -> np.ndarray:
     """
     from . import kernels
 
-    j_row = segs.row[segs.j_seg] if segs.j_seg.size else np.zeros(0, np.int32)
-    return kernels.subpixel_junctions(cls.gn, cls.bn, j_row.astype(np.int32), segs.j_ua, segs.j_ub, segs.j_la,
-                                      segs.j_lb, segs.u0, segs.u1, segs.j_seg)
+    return kernels.subpixel_junctions(cls.gn, cls.bn, segs.row, segs.j_ua, segs.j_ub, segs.j_la, segs.j_lb, segs.u0,
+                                      segs.u1, segs.j_seg)
 
 
 @functools.lru_cache(maxsize=16)
@@ -1401,8 +1400,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     jx = segs.j_x if segs.j_x is not None else subpixel_boundaries(cls, segs)
     seg_reg = un.seg_region
     # relative columns for every region (consistent inside it; unknown multiple of 2*stripe_px)
-    j_bnd = (segs.j_rel.astype(np.int64) + un.seg_P[segs.j_seg]).astype(np.float64) if segs.j_seg.size else \
-        np.zeros(0, np.float64)
+    j_bnd = kernels.junction_index(segs.j_rel, segs.j_seg, un.seg_P)
     jx64 = fit_boundaries(jx.astype(np.float64), segs, params.boundary_fit_half)
 
     def columns(seg_ok, column_all=None):

@@ -550,7 +550,7 @@ def resolve_roots(parent, pot):
 
 
 @njit(cache=True, nogil=True)
-def subpixel_junctions(gn, bn, j_row, j_ua, j_ub, j_la, j_lb, seg_u0, seg_u1, j_seg):
+def subpixel_junctions(gn, bn, seg_row, j_ua, j_ub, j_la, j_lb, seg_u0, seg_u1, j_seg):
     """Sub-pixel position (camera px, along the row) of every junction (stripe boundary).
 
     ``gn, bn`` are the colour channels normalised to [0, 1] between their local minimum and
@@ -559,14 +559,15 @@ def subpixel_junctions(gn, bn, j_row, j_ua, j_ub, j_la, j_lb, seg_u0, seg_u1, j_
     for green|cyan and ``gn = 1/2`` for blue|cyan.  The crossing nearest to the runs' junction is
     searched from the last pixel of the left run - 1 to the first pixel of the right run + 1 and
     located by linear interpolation between the two samples that bracket it.  NaN if none.
+    Junction ``j`` lies in segment ``j_seg[j]``, on row ``seg_row`` of it.
     """
-    nj = j_row.shape[0]
+    nj = j_seg.shape[0]
     out = np.full(nj, np.nan, np.float32)
     for j in range(nj):
-        v = j_row[j]
+        s = j_seg[j]
+        v = seg_row[s]
         la = j_la[j]
         lb = j_lb[j]
-        s = j_seg[j]
         a = max(j_ua[j] - 1, seg_u0[s])
         b = min(j_ub[j] + 1, seg_u1[s])
         mid = 0.5 * (j_ua[j] + j_ub[j])
@@ -596,6 +597,16 @@ def subpixel_junctions(gn, bn, j_row, j_ua, j_ub, j_la, j_lb, seg_u0, seg_u1, j_
                     best = x
             f0 = f
         out[j] = best
+    return out
+
+
+@njit(cache=True, nogil=True)
+def junction_index(j_rel, j_seg, seg_P):
+    """Boundary index of every junction (float64, as :func:`interpolate_columns` takes it): its
+    relative index within its segment ``j_rel`` plus the segment's offset ``seg_P[j_seg]``."""
+    out = np.empty(j_rel.shape[0], np.float64)
+    for j in range(j_rel.shape[0]):
+        out[j] = np.float64(np.int64(j_rel[j]) + np.int64(seg_P[j_seg[j]]))
     return out
 
 
