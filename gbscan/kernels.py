@@ -4222,6 +4222,18 @@ def _expanded(m0, bits, need, cj, gxj, gyj, dx, dy, stripe_px, no_boundary, edge
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _put_expanded(co, so, fo, mo, u, m0, bits, need, cj, gxj, gyj, cfj, dx, dy, stripe_px, no_boundary, edge_code):
+    # _expanded's full pixel stored at u of the output rows (column, stripe, confidence, mask);
+    # returns its mask code
+    m, x, s = _expanded(m0, bits, need, cj, gxj, gyj, dx, dy, stripe_px, no_boundary, edge_code)
+    co[u] = x
+    so[u] = s
+    fo[u] = cfj if m == 0 else np.float32(0.0)
+    mo[u] = m
+    return m
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def upsample_stripes(H, W, column, stripe, conf, mask, region, stripe_px, no_boundary, edge_code, centre_tol=0.2):
     """A decoder result on a frame resampled to (h, w) (``cv2.INTER_AREA``: the coarse pixel ``i``
     covers the full rows ``[i H / h, (i + 1) H / h)``), back at the full frame's (H, W) pixels:
@@ -4241,12 +4253,29 @@ def upsample_stripes(H, W, column, stripe, conf, mask, region, stripe_px, no_bou
     """
     h, w = column.shape
     gx, gy, nb = _slopes(column, region, float(stripe_px))
+    if H == 2 * h and W == 2 * w and centre_tol < 0.25:
+        col_o, stripe_o, conf_o, mask_o, counts4 = _upsample_x2(column, conf, mask, gx, gy, nb, stripe_px, no_boundary,
+                                                                edge_code)
+    else:
+        col_o, stripe_o, conf_o, mask_o, counts4 = _upsample_any(H, W, column, conf, mask, gx, gy, nb, stripe_px,
+                                                                 no_boundary, edge_code, centre_tol)
+    counts = counts4[0] + counts4[1] + counts4[2] + counts4[3]
+    return col_o, stripe_o, conf_o, mask_o, counts
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _upsample_any(H, W, column, conf, mask, gx, gy, nb, stripe_px, no_boundary, edge_code, centre_tol):
+    # upsample_stripes' loop for any factor: the outputs and four interleaved histograms of the mask
+    # codes (no chain of increments), made here (from a helper, this loop measured 4.6 against
+    # 4.2 ms: the compiler no longer sees that they alias none of the inputs)
+    h, w = column.shape
     col_o = np.empty((H, W), np.float32)
     stripe_o = np.empty((H, W), np.int32)
     conf_o = np.empty((H, W), np.float32)
     mask_o = np.empty((H, W), np.uint8)
-    counts4 = np.zeros((4, 16), np.int64)   # four interleaved histograms: no chain of increments
+    counts4 = np.zeros((4, 16), np.int64)
     dxs, xbit, first = _coarse_columns(w, W, centre_tol)
+    nan = np.float32(np.nan)
     f0 = np.float32(0.0)
     for v in range(H):
         i, dy, ybit = _coarse_row(v, h, H, centre_tol)
@@ -4254,22 +4283,61 @@ def upsample_stripes(H, W, column, stripe, conf, mask, region, stripe_px, no_bou
         co, so, fo, mo = col_o[v], stripe_o[v], conf_o[v], mask_o[v]
         # per coarse pixel: its values read once, then its full pixels
         for j in range(w):
-            m0 = m_r[j]
-            bits = nb_r[j]
-            cj = c_r[j]
-            gxj = gx_r[j]
-            gyj = gy_r[j]
-            cfj = cf_r[j]
+            m0, bits, cj, gxj, gyj, cfj = m_r[j], nb_r[j], c_r[j], gx_r[j], gy_r[j], cf_r[j]
             for u in range(first[j], first[j + 1]):
-                m, x, s = _expanded(m0, bits, xbit[u] | ybit, cj, gxj, gyj, dxs[u], dy, stripe_px, no_boundary,
-                                    edge_code)
+                # _expanded written out: through the helper this loop measured ~15 % slower
+                need = xbit[u] | ybit
+                m = m0
+                x = nan
+                s = -1
+                cf = f0
+                if m0 == 0:
+                    if bits & need != need:
+                        m = edge_code
+                    elif bits & 3 == 0:
+                        m = no_boundary
+                    else:
+                        x = np.float32(cj + gxj * dxs[u] + gyj * dy)
+                        s = int(np.floor((np.float64(x) + 0.5) / stripe_px))
+                        cf = cfj
                 co[u] = x
                 so[u] = s
-                fo[u] = cfj if m == 0 else f0
+                fo[u] = cf
                 mo[u] = m
                 counts4[u & 3, m & 15] += 1
-    counts = counts4[0] + counts4[1] + counts4[2] + counts4[3]
-    return col_o, stripe_o, conf_o, mask_o, counts
+    return col_o, stripe_o, conf_o, mask_o, counts4
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _upsample_x2(column, conf, mask, gx, gy, nb, stripe_px, no_boundary, edge_code):
+    # upsample_stripes' loop for an exact half (H = 2 h, W = 2 w): the full pixel (2 i + a, 2 j + b)
+    # of coarse pixel (i, j) sits at dy, dx = -1/4 (a, b = 0) or +1/4 (1) coarse px -- the same
+    # values as the general loop computes -- and always needs the neighbour bit its offset points to
+    # (8 / 4 across the rows, 2 / 1 along them).  Two full pixels per coarse pixel and row with the
+    # offsets as constants: 4.4 -> 1.6 ms at 1280x1024 (the general loop on the same frame).
+    h, w = column.shape
+    H, W = 2 * h, 2 * w
+    col_o = np.empty((H, W), np.float32)
+    stripe_o = np.empty((H, W), np.int32)
+    conf_o = np.empty((H, W), np.float32)
+    mask_o = np.empty((H, W), np.uint8)
+    counts4 = np.zeros((4, 16), np.int64)
+    q = 0.25
+    for i in range(h):
+        m_r, c_r, gx_r, gy_r, nb_r, cf_r = mask[i], column[i], gx[i], gy[i], nb[i], conf[i]
+        for a in range(2):
+            v = 2 * i + a
+            dy = q if a == 1 else -q
+            ybit = np.uint8(4) if a == 1 else np.uint8(8)
+            co, so, fo, mo = col_o[v], stripe_o[v], conf_o[v], mask_o[v]
+            for j in range(w):
+                m0, bits, cj, gxj, gyj, cfj = m_r[j], nb_r[j], c_r[j], gx_r[j], gy_r[j], cf_r[j]
+                for b in range(2):
+                    _put_expanded(co, so, fo, mo, 2 * j + b, m0, bits, ybit | (np.uint8(1) if b == 1 else np.uint8(2)),
+                                  cj, gxj, gyj, cfj, q if b == 1 else -q, dy, stripe_px, no_boundary, edge_code)
+            for u in range(W):
+                counts4[u & 3, mo[u] & 15] += 1
+    return col_o, stripe_o, conf_o, mask_o, counts4
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

@@ -156,6 +156,35 @@ def test_upsample_exact_on_a_linear_column():
     assert counts.sum() == H * W and counts[0] == ok.sum()
 
 
+def test_exact_half_expansion_equals_the_general_loop():
+    """The loop for an exact half (2x2 full pixels per coarse pixel) gives what the loop for any
+    factor gives, bit for bit: random columns, masks and regions with holes, so that every
+    neighbour bit and mask branch occurs."""
+    rng = np.random.default_rng(7)
+    h, w = 23, 31
+    col = (50 + 0.9 * np.arange(w)[None, :] + 0.2 * np.arange(h)[:, None] + rng.normal(0, 0.3, (h, w))).astype(np.float32)
+    mask = np.where(rng.random((h, w)) < 0.2, rng.integers(1, 8, (h, w)), 0).astype(np.uint8)
+    region = np.where(rng.random((h, w)) < 0.1, 1, 0).astype(np.int32)
+    region[mask != 0] = -1
+    col[mask != 0] = np.nan
+    conf = rng.random((h, w)).astype(np.float32)
+    gx, gy, nb = kernels._slopes(col, region, 8.0)
+    assert {0, 1, 2, 3} <= set(np.unique(nb & 3)) and {0, 4, 8, 12} <= set(np.unique(nb & 12))
+    outs = []
+    for o in (kernels._upsample_x2(col, conf, mask, gx, gy, nb, 8.0, NO_BOUNDARY, RIM),
+              kernels._upsample_any(2 * h, 2 * w, col, conf, mask, gx, gy, nb, 8.0, NO_BOUNDARY, RIM, 0.2)):
+        outs.append(list(o[:4]) + [o[4].sum(axis=0)])
+    for a, b in zip(*outs):
+        assert a.tobytes() == b.tobytes()
+    m = outs[0][3]
+    assert {0, RIM, NO_BOUNDARY} <= set(np.unique(m)) and outs[0][4].sum() == 4 * h * w
+    # and upsample_stripes takes the exact-half loop for these sizes
+    got = kernels.upsample_stripes(2 * h, 2 * w, col, np.zeros((h, w), np.int32), conf, mask, region, 8.0,
+                                   NO_BOUNDARY, RIM)
+    for a, b in zip(got, outs[0]):
+        assert a.tobytes() == b.tobytes()
+
+
 def test_other_maps_are_expanded_when_first_read(wide):
     """A resampled decode expands relative / region / labels / column_relative only when one is
     read (a scan reads none): the nearest coarse pixel's region and label, its relative index moved
