@@ -4266,8 +4266,9 @@ def upsample_stripes(H, W, column, stripe, conf, mask, region, stripe_px, no_bou
 @njit(cache=True, nogil=True, error_model="numpy")
 def _upsample_any(H, W, column, conf, mask, gx, gy, nb, stripe_px, no_boundary, edge_code, centre_tol):
     # upsample_stripes' loop for any factor: the outputs and four interleaved histograms of the mask
-    # codes (no chain of increments), made here (from a helper, this loop measured 4.6 against
-    # 4.2 ms: the compiler no longer sees that they alias none of the inputs)
+    # codes (no chain of increments) made here (from a helper, this loop measured 4.6 against
+    # 4.2 ms: the compiler no longer sees that they alias none of the inputs); each row's codes
+    # counted after the row (counted per pixel: 4.2 against 3.3 ms, head at 1280x1024 shrunk by 1.75)
     h, w = column.shape
     col_o = np.empty((H, W), np.float32)
     stripe_o = np.empty((H, W), np.int32)
@@ -4275,8 +4276,6 @@ def _upsample_any(H, W, column, conf, mask, gx, gy, nb, stripe_px, no_boundary, 
     mask_o = np.empty((H, W), np.uint8)
     counts4 = np.zeros((4, 16), np.int64)
     dxs, xbit, first = _coarse_columns(w, W, centre_tol)
-    nan = np.float32(np.nan)
-    f0 = np.float32(0.0)
     for v in range(H):
         i, dy, ybit = _coarse_row(v, h, H, centre_tol)
         m_r, c_r, gx_r, gy_r, nb_r, cf_r = mask[i], column[i], gx[i], gy[i], nb[i], conf[i]
@@ -4285,26 +4284,10 @@ def _upsample_any(H, W, column, conf, mask, gx, gy, nb, stripe_px, no_boundary, 
         for j in range(w):
             m0, bits, cj, gxj, gyj, cfj = m_r[j], nb_r[j], c_r[j], gx_r[j], gy_r[j], cf_r[j]
             for u in range(first[j], first[j + 1]):
-                # _expanded written out: through the helper this loop measured ~15 % slower
-                need = xbit[u] | ybit
-                m = m0
-                x = nan
-                s = -1
-                cf = f0
-                if m0 == 0:
-                    if bits & need != need:
-                        m = edge_code
-                    elif bits & 3 == 0:
-                        m = no_boundary
-                    else:
-                        x = np.float32(cj + gxj * dxs[u] + gyj * dy)
-                        s = int(np.floor((np.float64(x) + 0.5) / stripe_px))
-                        cf = cfj
-                co[u] = x
-                so[u] = s
-                fo[u] = cf
-                mo[u] = m
-                counts4[u & 3, m & 15] += 1
+                _put_expanded(co, so, fo, mo, u, m0, bits, xbit[u] | ybit, cj, gxj, gyj, cfj, dxs[u], dy, stripe_px,
+                              no_boundary, edge_code)
+        for u in range(W):
+            counts4[u & 3, mo[u] & 15] += 1
     return col_o, stripe_o, conf_o, mask_o, counts4
 
 
