@@ -622,7 +622,9 @@ def _shrink_range(stripe_range: np.ndarray, h: int, w: int) -> np.ndarray:
     H, W = stripe_range.shape[1:]
     ys = np.minimum(((np.arange(h) + 0.5) * H / h).astype(np.int64), H - 1)
     xs = np.minimum(((np.arange(w) + 0.5) * W / w).astype(np.int64), W - 1)
-    return np.ascontiguousarray(stripe_range[:, ys][:, :, xs], dtype=np.float32)
+    # (np.take along each axis: 0.8 ms at 1280x1024 -> 731x585, against 2.3-3.0 for the same
+    # gather by fancy indexing)
+    return np.ascontiguousarray(np.take(np.take(stripe_range, ys, axis=1), xs, axis=2), dtype=np.float32)
 
 
 def _decode_resampled(img, factor: float, stripe_px_frame: float, pattern: PatternSpec, params: DecodeParams,
