@@ -117,6 +117,24 @@ def test_working_volume_follows_the_shrunk_frame(wide):
     assert c.stats["reported"] == 0
 
 
+def test_working_volume_bounds_follow_the_nearest_full_pixel():
+    """The stripe bounds of a shrunk frame's pixel are those of the full pixel under its centre
+    (the one nearest to it), for exact and non-integer factors."""
+    from gbscan.decode import _shrink_range
+
+    rng = np.random.default_rng(3)
+    H, W = 96, 128
+    sr = rng.random((2, H, W)).astype(np.float32)
+    sr[0, 5, 7] = np.nan
+    for factor in (1.75, 2.0, 2.5):
+        h, w = resample_size((H, W), factor)
+        out = _shrink_range(sr, h, w)
+        assert out.shape == (2, h, w) and out.dtype == np.float32 and out.flags.c_contiguous
+        for i, j in ((0, 0), (h - 1, w - 1), (h // 2, w // 3), (3, 4)):
+            v, u = min(int((i + 0.5) * H / h), H - 1), min(int((j + 0.5) * W / w), W - 1)
+            np.testing.assert_array_equal(out[:, i, j], sr[:, v, u])
+
+
 def test_upsample_exact_on_a_linear_column():
     """The expansion is exact for a column linear in the pixel position, between decoded coarse
     pixels; past the last one towards an undecoded neighbour the pixel is masked (rim), and a
