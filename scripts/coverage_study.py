@@ -26,6 +26,13 @@ cameras) instead of full RGB per pixel (the paper's 3-CCD camera); ``--jpeg QUAL
 [--jpeg-sampling 4:2:0]`` stores the frames as JPEG (webcams, most "photo" modes); ``--ambient
 LEVEL`` lights the scene with warm room light (a fraction of the projector's light).
 
+``--edge-profile`` also prints the decoded columns' error near the edges of the reported area:
+signed mean and RMS in camera px (the projector-column error over the true stripe spacing
+``|d column / du|``) of the reported lit non-edge pixels at 1, 2, 3, 4 and 5+ px along the row
+from the nearest unreported pixel, split by the side it lies on (toward the projector or away
+from it), and at 1 ... 4 rows from one along the column.  It says whether the pixels at a rim are
+biased or merely noisy (with ``--decode-param rim_bias_px=0 ...`` it shows what the rim rules mask).
+
 ``--out DIR`` writes ``coverage_<scene>_s<seed>.png`` per frame: the lit non-edge pixels, kept in
 grey, lost ones coloured by reason (the decoder preview's colours), grazing ones (beyond 70
 degrees) darker, with a legend.
@@ -45,7 +52,7 @@ BINS_DEG = (0, 40, 60, 70, 75, 80, 90)
 
 def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", decode_params=None,
           yaw_deg: float | None = None, depth_range=None, conditions: dict | None = None,
-          baseline_mm: float = 200.0, camera_px: tuple[int, int] = (640, 480)) -> dict:
+          baseline_mm: float = 200.0, camera_px: tuple[int, int] = (640, 480), edge_profile: bool = False) -> dict:
     from gbscan import sim
     from gbscan.calibfile import calibration_from_rig
     from gbscan.decode import REASONS
@@ -98,9 +105,72 @@ def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", 
         parts = ", ".join(f"{'cleaned' if c == 0 else REASONS[int(c)]} {100 * n / good.sum():.2f}"
                           for c, n in sorted(zip(codes, counts), key=lambda t: -t[1]))
         print(f"   lost {label:6s} (% of lit non-edge): {parts if parts else 'none'}")
+    if edge_profile:
+        res["edge_profile"] = print_edge_profile(rig, r, s.stripemap, good)
     if out is not None:
         res["picture"] = str(picture(out / f"coverage_{name}_s{seed}.png", r.image, good, kept, facing, mask))
     return res
+
+
+def edge_distances(unreported: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel, the distance (px) along its row to the nearest ``unreported`` pixel on the left
+    and on the right, and along its column to the nearest above or below (a large number where
+    there is none): (left, right, vertical), (H, W) int64 each."""
+    H, W = unreported.shape
+    big = H + W
+
+    def run_from_start(m: np.ndarray) -> np.ndarray:
+        # distance to the last True at or before each index along the last axis
+        idx = np.where(m, np.arange(m.shape[-1]), -big)
+        return np.arange(m.shape[-1]) - np.maximum.accumulate(idx, axis=-1)
+
+    left = run_from_start(unreported)
+    right = run_from_start(unreported[:, ::-1])[:, ::-1]
+    up = run_from_start(unreported.T).T
+    down = run_from_start(unreported[::-1].T).T[::-1]
+    return left, right, np.minimum(up, down)
+
+
+def print_edge_profile(rig, r, sm, good) -> dict:
+    """The ``--edge-profile`` table of one frame (see the module's docstring); returns its cells
+    as {(direction, distance): (n, mean, rms)} in camera px."""
+    truth = np.asarray(r.proj_xy[..., 0], np.float64)
+    spacing = np.abs(np.gradient(truth, axis=1))      # projector px per camera px along the row
+    err = (sm.column - truth) / np.where(spacing > 1e-3, spacing, np.nan)
+    reported = sm.valid
+    left, right, vert = edge_distances(~reported)
+    use = good & reported & np.isfinite(err)
+    # the projector lies toward +u when its centre is right of the camera's (x right)
+    proj_right = rig.t_cam_proj[0] > 0
+    toward = np.where(proj_right, right <= left, left < right)   # the nearer unreported pixel's side
+    horiz = np.minimum(left, right)
+    cells = {}
+    lines = []
+    for label, side in (("toward the projector", toward), ("away from it", ~toward)):
+        parts = []
+        for d in (1, 2, 3, 4, 5):
+            m = use & side & ((horiz == d) if d < 5 else (horiz >= d)) & (vert >= 5)
+            if d == 5:
+                m = use & (horiz >= 5) & (vert >= 5)
+            e = err[m]
+            cells[(label, d)] = (int(e.size), float(e.mean()) if e.size else np.nan,
+                                 float(np.sqrt(np.mean(e ** 2))) if e.size else np.nan)
+            if d < 5:
+                parts.append(f"{d}: {e.mean():+.2f} / {np.sqrt(np.mean(e ** 2)):.2f} ({e.size})" if e.size else f"{d}: -")
+        lines.append(f"   along the row, unreported pixel {label:21s} " + " | ".join(parts))
+    parts = []
+    for d in (1, 2, 3, 4):
+        e = err[use & (vert == d) & (horiz >= 5)]
+        cells[("vertical", d)] = (int(e.size), float(e.mean()) if e.size else np.nan,
+                                  float(np.sqrt(np.mean(e ** 2))) if e.size else np.nan)
+        parts.append(f"{d}: {e.mean():+.2f} / {np.sqrt(np.mean(e ** 2)):.2f} ({e.size})" if e.size else f"{d}: -")
+    n5, m5, r5 = cells[("toward the projector", 5)]
+    print("   column error near the reported area's edges, camera px, mean / RMS (pixels) at 1-4 px from the "
+          f"nearest unreported pixel; 5+ px from any: {m5:+.2f} / {r5:.2f} ({n5})")
+    for line in lines:
+        print(line)
+    print(f"   along the column (5+ px from one along the row)                " + " | ".join(parts))
+    return cells
 
 
 def picture(path: Path, image: np.ndarray, good, kept, facing, mask) -> Path:
@@ -159,6 +229,8 @@ def main(argv=None) -> int:
     ap.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
                     help="a gbscan.decode.DecodeParams field other than the default (repeatable), "
                          "e.g. extrapolate_fit=0")
+    ap.add_argument("--edge-profile", action="store_true",
+                    help="also print the decoded columns' signed error by distance to the reported area's edges")
     from gbscan.cli_common import (add_rig_arguments, add_ambient_argument, add_bayer_argument, add_jpeg_arguments,
                                    ambient_fields, ambient_label, jpeg_fields, jpeg_label, rig_from_args)
 
@@ -212,7 +284,7 @@ def main(argv=None) -> int:
     for name in names:
         for seed in seeds:
             res = study(name, seed, args.preset, out, args.bayer, decode_params, args.yaw_deg, args.depth_range,
-                        conditions, args.baseline_mm, args.camera)
+                        conditions, args.baseline_mm, args.camera, args.edge_profile)
             if "picture" in res:
                 print(f"   wrote {res['picture']}")
     return 0

@@ -671,6 +671,34 @@ def test_coverage_study_script_options(capsys):
         with pytest.raises(SystemExit) as e:
             mod.main(argv)
         assert e.value.code == 2 and msg in capsys.readouterr().err
-    assert mod.main(["--scenes", "plane", "--decode-param", "extrapolate_fit=0", "--baseline-mm", "150"]) == 0
+    assert mod.main(["--scenes", "plane", "--decode-param", "extrapolate_fit=0", "--baseline-mm", "150",
+                     "--edge-profile"]) == 0
     out = capsys.readouterr().out
     assert "decoder extrapolate_fit=0" in out and "## plane, seed 0: kept" in out and "(baseline 150 mm, camera 640x480)" in out
+    # the edge profile: a plane's interior columns are within a tenth of a camera px
+    line = next(x for x in out.splitlines() if "column error near the reported area's edges" in x)
+    mean, rms = (float(t) for t in line.split("5+ px from any: ")[1].split(" (")[0].split(" / "))
+    assert abs(mean) < 0.05 and rms < 0.1, line
+    assert "unreported pixel toward the projector" in out and "along the column" in out
+
+
+def test_coverage_study_edge_distances():
+    """The edge profile's distances: along the row to the nearest unreported pixel on each side,
+    along the column to the nearest above or below; exact on a small mask."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "coverage_study.py"
+    spec = importlib.util.spec_from_file_location("coverage_study", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    un = np.zeros((5, 7), bool)
+    un[2, 1] = True
+    un[0, 5] = True
+    left, right, vert = mod.edge_distances(un)
+    big = 5 + 7
+    assert left[2].tolist()[1:] == [0, 1, 2, 3, 4, 5] and left[2, 0] > big - 1
+    assert right[2].tolist()[:2] == [1, 0] and (right[2, 2:] > big - 5).all()
+    assert right[0].tolist()[:6] == [5, 4, 3, 2, 1, 0] and left[0, 6] == 1
+    assert vert[:, 1].tolist() == [2, 1, 0, 1, 2] and vert[:, 5].tolist() == [0, 1, 2, 3, 4]
+    assert (vert[:, 0] >= big - 5).all()
