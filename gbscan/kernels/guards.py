@@ -1,0 +1,363 @@
+"""The decoder's guards after the masks: the rim guard rows, stripe SNR, orphans, the
+brightness-step guard, bridge cuts.
+
+Part of :mod:`gbscan.kernels` (its docstring has the conventions)."""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+# -- decoder: rim guard (gbscan.decode.rim_guard) --------------------------------------------------
+@njit(cache=True, nogil=True, error_model="numpy")
+def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows_a, rows_b, ok_code, rim_code,
+                   flags, a3=-1):
+    """Mask ``rim_code`` the ``ok_code`` pixels within ``rows_a`` rows (same column) of a pixel
+    whose code is ``a1`` or ``a2`` (or ``a3`` when >= 0), or within ``rows_b`` rows of one whose code is in
+    ``[b_lo, b_hi]`` or equals ``b_extra``; sets column NaN, stripe -1, conf 0 there and returns
+    their count (a negative row count disables its class).  The codes are read from the mask as
+    given (pixels masked here do not extend the guard).  ``flags`` (H, W) uint8 scratch: bit 1
+    class a, bit 2 class b (one pass); then per row the OR of the flags of the rows in reach
+    (byte-wide loops that vectorise) decides, and the few hits are written."""
+    H, W = mask.shape
+    ua1, ua2 = np.uint8(a1), np.uint8(a2)
+    ua3 = np.uint8(a3) if a3 >= 0 else ua1   # an optional third code of class a
+    ulo, uhi, uex = np.uint8(b_lo), np.uint8(b_hi), np.uint8(b_extra)
+    uok = np.uint8(ok_code)
+    one, two = np.uint8(1), np.uint8(2)
+    for v in range(H):
+        mrow = mask[v]
+        frow = flags[v]
+        for u in range(W):
+            m = mrow[u]
+            fa = np.uint8((m == ua1) | (m == ua2) | (m == ua3))
+            fb = np.uint8(((m >= ulo) & (m <= uhi)) | (m == uex))
+            frow[u] = fa | (fb << one)
+    reach = max(rows_a, rows_b, 0)
+    acc = np.empty(W, np.uint8)
+    hitrow = np.empty(W, np.uint8)
+    n = 0
+    # every decision reads ``flags`` (made from the mask as given), never the rows written here
+    for v in range(H):
+        acc[:] = 0
+        for vv in range(max(v - reach, 0), min(v + reach, H - 1) + 1):
+            d = abs(vv - v)
+            bits = np.uint8((one if d <= rows_a else 0) | (two if d <= rows_b else 0))
+            if bits == 0:
+                continue
+            frow = flags[vv]
+            for u in range(W):
+                acc[u] |= frow[u] & bits
+        mrow = mask[v]
+        any_hit = np.uint8(0)
+        for u in range(W):
+            h = np.uint8((acc[u] != 0) & (mrow[u] == uok))
+            hitrow[u] = h
+            any_hit |= h
+        if any_hit:
+            n += _unreport_row(hitrow, mrow, column[v], stripe[v], conf[v], rim_code)
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _unreport_row(hit, mrow, col, stripe, conf, code):
+    """Mask ``code`` the pixels of one row where ``hit`` is set: column NaN, stripe -1,
+    confidence 0 (the final outputs of :func:`finish_pixels`); returns their count."""
+    n = 0
+    for u in range(hit.shape[0]):
+        if hit[u]:
+            mrow[u] = code
+            col[u] = np.nan
+            stripe[u] = -1
+            conf[u] = 0.0
+            n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def stripe_snr(img, lut, row_step, col_step, lit_dn):
+    """Stripe signal-to-noise ratio of a frame, from every ``col_step``-th pixel of every
+    ``row_step``-th row (cheap: 1/(row_step col_step) of the pixels, three rows read for each).
+
+    img (H, W, 3) uint8 RGB; lut (256,) float32 encoded -> linear DN (``decode.gamma_lut``);
+    lit_dn: samples whose linear green or blue reaches this count.  On ``d = g - b`` (linear):
+
+    * noise (DN): robust standard deviation of the vertical second difference
+      ``d[v-1] - 2 d[v] + d[v+1]`` (variance ``6 sigma^2`` for white noise), ``1.4826 * MAD``;
+      the stripes run along the columns, so the difference removes them and leaves the noise
+      (bends and silhouettes add a few large values, which the median ignores);
+    * modulation (DN): the 80th percentile of ``|d|`` (the stripe's swing, away from its
+      boundaries).
+
+    Returns (noise_dn, modulation_dn, n_samples); histograms of 0.05 DN (noise) and 0.25 DN
+    (modulation) bins give the quantiles in one pass."""
+    H, W = img.shape[0], img.shape[1]
+    nb_n = 2048
+    nb_m = 1024
+    hn = np.zeros(nb_n, np.int64)
+    hm = np.zeros(nb_m, np.int64)
+    inv6 = 1.0 / np.sqrt(6.0)
+    n = 0
+    for v in range(1, H - 1, row_step):
+        for u in range(0, W, col_step):
+            g1 = lut[img[v, u, 1]]
+            b1 = lut[img[v, u, 2]]
+            if g1 < lit_dn and b1 < lit_dn:
+                continue
+            d0 = lut[img[v - 1, u, 1]] - lut[img[v - 1, u, 2]]
+            d1 = g1 - b1
+            d2 = lut[img[v + 1, u, 1]] - lut[img[v + 1, u, 2]]
+            e = abs(d0 - 2.0 * d1 + d2) * inv6
+            k = int(e * 20.0)
+            hn[min(k, nb_n - 1)] += 1
+            k = int(abs(d1) * 4.0)
+            hm[min(k, nb_m - 1)] += 1
+            n += 1
+    if n == 0:
+        return 0.0, 0.0, 0
+    # median of the noise histogram, 80th percentile of the modulation one (bin centres)
+    med = _hist_quantile(hn, (n + 1) // 2) / 20.0
+    mod = _hist_quantile(hm, int(np.ceil(0.8 * n))) / 4.0
+    return 1.4826 * med, mod, n
+
+
+@njit(cache=True, nogil=True)
+def _hist_quantile(hist, count):
+    """Centre (in bins, ``k + 0.5``) of the first bin where the cumulative count reaches ``count``."""
+    c = 0
+    for k in range(hist.shape[0]):
+        c += hist[k]
+        if c >= count:
+            return k + 0.5
+    return hist.shape[0] - 0.5
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def drop_orphans(mask, column, stripe, conf, ok_code, code):
+    """Mask ``code`` every reported pixel (``mask == ok_code``) none of whose 8 neighbours is
+    reported: a lone pixel left between masked ones has no neighbour to be checked against (the
+    vertical check ran before the rim masks).  column/stripe/conf set to NaN/-1/0; in place;
+    returns the count.  Per row, branch-free: ``vert[u]`` = reported in rows v-1..v+1 at u, a pixel
+    is alone when ``vert`` is clear at u-1 and u+1 and its own column has only itself."""
+    H, W = mask.shape
+    vert = np.zeros(W + 2, np.uint8)   # padded by one column each side
+    other = np.zeros(W, np.uint8)
+    alone = np.zeros(W, np.uint8)
+    n = 0
+    for v in range(H):
+        cur = mask[v]
+        up = mask[v - 1] if v > 0 else mask[v]
+        dn = mask[v + 1] if v + 1 < H else mask[v]
+        has_up = np.uint8(1 if v > 0 else 0)
+        has_dn = np.uint8(1 if v + 1 < H else 0)
+        for u in range(W):
+            a = np.uint8(up[u] == ok_code) & has_up
+            b = np.uint8(dn[u] == ok_code) & has_dn
+            c = np.uint8(cur[u] == ok_code)
+            vert[u + 1] = a | b | c
+            other[u] = a | b
+        hit = np.uint8(0)
+        for u in range(W):
+            x = np.uint8(cur[u] == ok_code) & ~(vert[u] | vert[u + 2] | other[u]) & np.uint8(1)
+            alone[u] = x
+            hit |= x
+        if hit:
+            n += _unreport_row(alone, cur, column[v], stripe[v], conf[v], code)
+    return n
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _brightness(img, lut, v, u, h):
+    # phase-blind brightness of pixel (v, u): the mean of lut[G] + lut[B] over columns u - h .. u + h
+    # (clipped at the image sides); a window of about one green-blue period sums a green and a
+    # blue stripe whatever the phase, so its steps are the surface's irradiance and albedo
+    W = img.shape[1]
+    lo = max(u - h, 0)
+    hi = min(u + h, W - 1)
+    px = img[v]
+    s = np.float32(0.0)
+    for x in range(lo, hi + 1):
+        s += lut[px[x, 1]] + lut[px[x, 2]]
+    return s / np.float32(hi - lo + 1)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _step_at(buf, i_bright, i_dim, half, ratio, flat):
+    # the step test on buf[i_bright : i_bright + half] (the bright side's rows) against
+    # buf[i_dim : i_dim + half] (the dim side's): brighter by more than ``ratio`` in the mean, the
+    # dim side flat (max <= ``flat`` min)
+    sa = np.float32(0.0)
+    for k in range(i_bright, i_bright + half):
+        sa += buf[k]
+    sb = np.float32(0.0)
+    lo = np.float32(np.inf)
+    hi = np.float32(0.0)
+    for k in range(i_dim, i_dim + half):
+        x = buf[k]
+        sb += x
+        lo = min(lo, x)
+        hi = max(hi, x)
+    return sa > ratio * sb and hi <= flat * lo
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _step_below(img, lut, box_h, u, a, b, reach, ratio, half, flat, buf):
+    # step_guard's test for a dim side below a step in the stretch a..b of column u: the lowest
+    # boundary t (between rows t - 1 and t) that qualifies, rows t - 1 .. b to mask; b + 2: none.
+    # Reads rows max(a, b - reach - half) .. b (buf[k - a]: row k's brightness)
+    t0 = max(a + half + 1, b - reach + 1)
+    if t0 > b - half:
+        return b + 2
+    for k in range(t0 - 1 - half, b + 1):
+        buf[k - a] = _brightness(img, lut, k, u, box_h)
+    for t in range(t0, b - half + 1):
+        if _step_at(buf, t - 1 - half - a, t + 1 - a, half, ratio, flat):
+            return t
+    return b + 2
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _step_above(img, lut, box_h, u, a, b, reach, ratio, half, flat, buf):
+    # mirrored: a dim side above a step, the highest t that qualifies, rows a .. t to mask; a - 1:
+    # none.  Reads rows a .. min(b, a + reach + half): the same answer for any b past that row
+    t1 = min(b - half, a + reach)
+    if t1 < a + half + 1:
+        return a - 1
+    for k in range(a, t1 + half + 1):
+        buf[k - a] = _brightness(img, lut, k, u, box_h)
+    for t in range(t1, a + half, -1):
+        if _step_at(buf, t + 1 - a, t - 1 - half - a, half, ratio, flat):
+            return t
+    return a - 1
+
+
+@njit(cache=True, nogil=True)
+def _unreport_rows(mask, column, stripe, conf, u, x0, x1, ok_code, code):
+    # rows x0 .. x1 of column u: reported pixels -> ``code`` (NaN / -1 / 0); returns the count
+    n = 0
+    for x in range(x0, x1 + 1):
+        if mask[x, u] == ok_code:
+            mask[x, u] = code
+            column[x, u] = np.nan
+            stripe[x, u] = -1
+            conf[x, u] = 0.0
+            n += 1
+    return n
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def step_guard(img, lut, box, region, mask, column, stripe, conf, reach, ratio, half, flat, ok_code, code):
+    """Mask ``code`` the reported pixels (``mask == ok_code``) on the dim side of a brightness
+    step inside their region's stretch along an image column, near that stretch's end: the
+    stripes the along-stripe blur carried from a brighter surface across a horizontal depth edge.
+    Returns the count; column/stripe/conf set to NaN/-1/0 there; in place.
+
+    img (H, W, 3) uint8 RGB, lut (256,) float32 linearisation: the brightness of a pixel is the
+    mean of ``lut[G] + lut[B]`` over the ``box`` (odd) px of its row around it (clipped at the
+    sides; about one green-blue period: phase-blind).  region (H, W) int32 (-1 none).  For each
+    column, each maximal run of rows ``a .. b`` of one region and each boundary ``t`` between rows
+    ``t - 1`` and ``t`` with ``half`` rows of the run beyond a transition row on either side:
+    ``A`` = mean brightness over rows ``t - 1 - half .. t - 2``, ``B`` over ``t + 1 .. t + half``
+    (rows ``t - 1`` and ``t`` skipped: the camera's defocus blends them).  If ``A > ratio B``, the
+    ``B`` rows are flat (max <= ``flat`` min: a surface, not the ramp of a light field's or
+    shadow's edge) and the run ends within ``reach`` rows past the transition pair (``b - t + 1 <=
+    reach``), rows ``t - 1 .. b`` are masked; mirrored for a brighter side below (``t - a <= reach``:
+    rows ``a .. t``).  Row-major: the runs are found by comparing each row with the run each
+    column is in, and only their ends are looked at, each while its rows are recent (the top
+    ``reach + half + 1`` rows after them, the bottom when the run ends); the brightness is
+    computed there alone.
+    """
+    H, W = region.shape
+    cur = np.full(W, -1, np.int32)
+    start = np.zeros(W, np.int64)
+    due = np.full(W, H + 1, np.int64)   # row at which the stretch's top test can run (H + 1: done)
+    buf = np.empty(H, np.float32)
+    n = 0
+    box_h = box // 2
+    top_rows = reach + half + 1         # the rows the top test reads
+    for v in range(H + 1):
+        for u in range(W):
+            r = region[v, u] if v < H else np.int32(-1)
+            if r == cur[u]:
+                if v == due[u]:
+                    # the top test, while its rows are recent (they are the same for any end below)
+                    a = start[u]
+                    hi_t = _step_above(img, lut, box_h, u, a, v - 1, reach, ratio, half, flat, buf)
+                    n += _unreport_rows(mask, column, stripe, conf, u, a, hi_t, ok_code, code)
+                    due[u] = H + 1
+                continue
+            if cur[u] >= 0:
+                a = start[u]
+                b = v - 1
+                if due[u] <= H:   # a short stretch: its top test now
+                    hi_t = _step_above(img, lut, box_h, u, a, b, reach, ratio, half, flat, buf)
+                    n += _unreport_rows(mask, column, stripe, conf, u, a, hi_t, ok_code, code)
+                lo_t = _step_below(img, lut, box_h, u, a, b, reach, ratio, half, flat, buf)
+                n += _unreport_rows(mask, column, stripe, conf, u, lo_t - 1, b, ok_code, code)
+            cur[u] = r
+            start[u] = v
+            due[u] = v + top_rows if r >= 0 else H + 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def bridge_cuts(j_x, seg_j0, seg_j1, ratio, pre):
+    """Junctions of unlocated boundaries whose bridge does not fit the spacing on both sides.
+
+    ``j_x`` (n_j,) float64 sub-pixel boundary positions (NaN: not located), ``seg_j0, seg_j1``
+    each segment's junction range, ``pre`` (n_j,) uint8 junctions cut already (by
+    :func:`spacing_cuts`: they end a piece, as :func:`apply_cuts` will make them).  Inside each
+    piece, a run of unlocated junctions ``a..b`` is bridged by the located boundaries ``a - 1``
+    and ``b + 1``: its mean spacing ``(x[b+1] - x[a-1]) / (b - a + 2)`` must lie within
+    ``[1/ratio, ratio]`` of the located spacing just left of it and of the one just right of it
+    (those measurable; at least one).  Otherwise (no bridge: the run ends the piece, nothing to
+    compare with, or a misfit) every junction of the run is cut.  Returns (n_j,) uint8 (the new
+    cuts only).
+    """
+    nj = j_x.shape[0]
+    cut = np.zeros(nj, np.uint8)
+    for s in range(seg_j0.shape[0]):
+        p0 = seg_j0[s]
+        while p0 < seg_j1[s]:
+            p1 = p0  # the piece [p0, p1) ends at the next junction cut already
+            while p1 < seg_j1[s] and pre[p1] == 0:
+                p1 += 1
+            _bridge_piece(j_x, p0, p1, ratio, cut)
+            p0 = p1 + 1
+    return cut
+
+
+@njit(cache=True, nogil=True)
+def _bridge_piece(j_x, j0, j1, ratio, cut):
+    j = j0
+    while j < j1:
+        if not np.isnan(j_x[j]):
+            j += 1
+            continue
+        a = j
+        while j < j1 and np.isnan(j_x[j]):
+            j += 1
+        b = j - 1
+        ja = a - 1
+        jb = b + 1
+        ok = ja >= j0 and jb < j1
+        if ok:
+            sp = (j_x[jb] - j_x[ja]) / (jb - ja)
+            n_nb = 0
+            if sp <= 0.0:
+                ok = False
+            if ok and ja - 1 >= j0 and not np.isnan(j_x[ja - 1]):
+                q = j_x[ja] - j_x[ja - 1]
+                n_nb += 1
+                if q <= 0.0 or sp > ratio * q or sp * ratio < q:
+                    ok = False
+            if ok and jb + 1 < j1 and not np.isnan(j_x[jb + 1]):
+                q = j_x[jb + 1] - j_x[jb]
+                n_nb += 1
+                if q <= 0.0 or sp > ratio * q or sp * ratio < q:
+                    ok = False
+            if n_nb == 0:
+                ok = False
+        if not ok:
+            for k in range(a, b + 1):
+                cut[k] = 1

@@ -1,0 +1,352 @@
+"""Compiled forms of Python steps of :mod:`gbscan.unwrap` and :mod:`gbscan.decode` (same
+results): the vertical votes between the segments of neighbouring rows (paper step 2), the
+marker conflicts of linked rows, and the slope samples and verdicts of the components' linking.
+
+Part of :mod:`gbscan.kernels` (its docstring has the conventions)."""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from ._common import CYAN, NONE
+from .segments import _vertical_votes_sorted
+
+
+# -- decoder back end: compiled forms of Python steps (same results) -------------------------------
+@njit(cache=True, nogil=True)
+def _window_slope(img, comp, want, r, col, half_px, min_span_px):
+    # one :func:`window_slopes` entry: the outermost finite pixels (of component ``want`` when
+    # ``want >= 0``) within col +- half_px are searched from each end (same pair, fewer reads)
+    H, W = img.shape
+    if r < 0 or r >= H:
+        return np.nan
+    lo = max(col - half_px, 0)
+    hi = min(col + half_px, W - 1)
+    a = -1
+    for x in range(lo, hi + 1):
+        if not np.isnan(img[r, x]) and (want < 0 or comp[r, x] == want):
+            a = x
+            break
+    if a < 0:
+        return np.nan
+    b = a
+    for x in range(hi, a, -1):
+        if not np.isnan(img[r, x]) and (want < 0 or comp[r, x] == want):
+            b = x
+            break
+    if b - a >= min_span_px:
+        return (img[r, b] - img[r, a]) / (b - a)
+    return np.nan
+
+
+@njit(cache=True, nogil=True)
+def _first_slope(img, comp, want, v, d, col, r0, r1, half_px):
+    # the first measurable row r0 .. r1-1 rows from v in direction d (``window_slopes`` per row)
+    for r in range(r0, r1):
+        g = _window_slope(img, comp, want, v + r * d, col, half_px, half_px)
+        if not np.isnan(g):
+            return g
+    return np.nan
+
+
+@njit(cache=True, nogil=True)
+def slope_samples(vc, vk, vl, vv, comp, col_rel, col_abs, region, comps, offsets, rows, half_px):
+    """The slopes of :func:`gbscan.unwrap._slope_jumps` for the votes that can decide: vertical
+    votes (``vl >= 0``) of a component in ``comps`` (its ``vc``; the offset is checked later).
+
+    Returns per such vote (in vote order): ``c, k`` (int64 component and offset), ``side`` (int64
+    -1: the reported pair lies above, 1 below), ``g_c`` the component's slope (``rows .. 2 rows - 1``
+    rows into it), ``g_near`` and ``g_deep`` the voting region's (from ``rows`` and ``3 rows`` rows
+    into it), float64, NaN where no row was measurable (see ``_slope_jumps``)."""
+    H, W = col_rel.shape
+    n_c = 0
+    for i in range(comps.shape[0]):
+        if comps[i] + 1 > n_c:
+            n_c = comps[i] + 1
+    want_c = np.zeros(max(n_c, 1), np.bool_)
+    for i in range(comps.shape[0]):
+        if comps[i] >= 0:
+            want_c[comps[i]] = True
+    n = 0
+    for i in range(vc.shape[0]):
+        if vl[i] >= 0 and 0 <= vc[i] < n_c and want_c[vc[i]]:
+            n += 1
+    o_c = np.empty(n, np.int64)
+    o_k = np.empty(n, np.int64)
+    o_d = np.empty(n, np.int64)
+    g_c = np.empty(n, np.float64)
+    g_n = np.empty(n, np.float64)
+    g_d = np.empty(n, np.float64)
+    m = 0
+    for i in range(vc.shape[0]):
+        if not (vl[i] >= 0 and 0 <= vc[i] < n_c and want_c[vc[i]]):
+            continue
+        c = vc[i]
+        u = vl[i]
+        v = vv[i]
+        up = v >= 2 and not np.isnan(col_abs[v - 1, u]) and not np.isnan(col_abs[v - 2, u])
+        d = -1 if up else 1
+        q = min(max(v + d, 0), H - 1)
+        src = region[q, u]
+        o_c[m] = c
+        o_k[m] = vk[i]
+        o_d[m] = d
+        g_c[m] = _first_slope(col_rel, comp, np.int32(c), v, -d, u, rows, 2 * rows, half_px)
+        g_n[m] = _first_slope(col_abs, region, src, v, d, u, rows, 2 * rows, half_px)
+        g_d[m] = _first_slope(col_abs, region, src, v, d, u, 3 * rows, 4 * rows, half_px)
+        m += 1
+    return o_c, o_k, o_d, g_c, g_n, g_d
+
+
+@njit(cache=True, nogil=True)
+def _median_sorted(x, n):
+    # numpy's median of the sorted x[:n]: the middle value, or the mean of the middle two
+    h = n // 2
+    if n % 2 == 1:
+        return x[h]
+    return (x[h - 1] + x[h]) / 2.0
+
+
+@njit(cache=True, nogil=True)
+def slope_verdicts(c, k, side, lr_near, lr_deep, comps, offsets, lim_near, lim_deep, z_min, min_votes, noise_floor):
+    """(len(comps),) bool verdicts of :func:`gbscan.unwrap._slope_jumps` from the per-vote log slope
+    ratios (NaN: not measured) of :func:`slope_samples`: for component ``comps[i]`` at offset
+    ``offsets[i]``, the *near* ratios of all its votes and the *deep* ones of each side apart, with
+    at least ``min_votes`` measured, flag it when ``|median| > lim`` and ``|median| > z_min *
+    max(1.4826 MAD, noise_floor) / sqrt(n)`` (numpy's median: mean of the middle two when even)."""
+    n_out = comps.shape[0]
+    out = np.zeros(n_out, np.bool_)
+    buf = np.empty(c.shape[0], np.float64)
+    for i in range(n_out):
+        for pas in range(3):  # 0: near, all sides; 1: deep, side -1; 2: deep, side 1
+            lr = lr_near if pas == 0 else lr_deep
+            want_side = 0 if pas == 0 else (-1 if pas == 1 else 1)
+            lim = lim_near if pas == 0 else lim_deep
+            n = 0
+            for j in range(c.shape[0]):
+                if c[j] == comps[i] and k[j] == offsets[i] and not np.isnan(lr[j]) and \
+                        (want_side == 0 or side[j] == want_side):
+                    buf[n] = lr[j]
+                    n += 1
+            if n < min_votes:
+                continue
+            s = np.sort(buf[:n])
+            med = _median_sorted(s, n)
+            dev = np.empty(n, np.float64)
+            for j in range(n):
+                dev[j] = abs(s[j] - med)
+            mad = _median_sorted(np.sort(dev), n)
+            spread = max(1.4826 * mad, noise_floor) / np.sqrt(np.float64(n))
+            if abs(med) > lim and abs(med) > z_min * spread:
+                out[i] = True
+    return out
+
+
+@njit(cache=True, nogil=True)
+def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_ub,
+                     seg_region, reg_offset, reg_indexed, is_marker, min_run_px, min_events, clean_level):
+    """Pixels of indexed regions whose own row contradicts the region's marker placement.
+
+    A region's offset is fixed by all of its markers at once; a segment that crossed a depth edge
+    where the stripes of two surfaces happen to line up (the colour sequence stays valid) carries
+    part of the other surface with a shift of an even number of stripes.  Along each segment the
+    runs are checked against the region's offset: a cyan run of at least ``min_run_px`` pixels on
+    a marker stripe *agrees*, a cyan run on a non-marker stripe or a green/blue run of at least
+    ``min_run_px`` pixels on a marker stripe *disagrees*.  A stretch between two agreeing runs (or
+    the segment's end) holding at least ``min_events`` disagreements is rejected, the agreeing
+    runs at its ends included (the jump lies somewhere in between, and the boundary next to it
+    belongs to neither surface), with the unlabelled gaps between them.  A shifted stretch shows
+    two kinds of disagreement (its markers where none belong, green/blue where the region's
+    markers belong); a single one is usually a marker missed at a rim.  ``is_marker``
+    (n_stripes,) bool; stripes outside it are neutral.
+
+    A *clean* disagreement is decisive on its own.  ``gn, bn`` (H, W) float32 are the green and
+    blue channels normalised between their local min and max (``gbscan.decode.Classified``).
+    A projected marker lights both channels, so even a
+    marker pixel the classifier calls green or blue (a missed marker: skin, a rim) keeps the
+    other channel well up (``min(gn, bn)`` ~0.3-0.5); on a green or blue stripe the other
+    channel sits at its local minimum.  A green/blue run on a marker stripe whose mean
+    ``min(gn, bn)`` is below ``clean_level`` is therefore no missed marker but another stripe:
+    it counts as ``min_events`` disagreements (``clean_level <= 0``: off; ``gn, bn`` are not read).
+    Cyan on a non-marker stripe still counts one (glints, the hard preset's noise).
+    Returns the rejected spans, (n, 3) int32 rows ``(v, u_first, u_last)``.
+    """
+    H, W = labels.shape
+    spans = np.empty((16, 3), np.int32)
+    n_sp = 0
+    n_st = is_marker.shape[0]
+    cap = W + 2
+    ev = np.zeros(cap, np.int32)    # per run: +1 agree, -w disagree (w its weight), 0 neutral
+    ra = np.zeros(cap, np.int32)    # run start / end pixel
+    rb = np.zeros(cap, np.int32)
+    for s in range(seg_row.shape[0]):
+        k = seg_region[s]
+        if k < 0 or not reg_indexed[k]:
+            continue
+        v = seg_row[s]
+        nr = 0
+        any_bad = False
+        a = seg_u0[s]
+        for j in range(seg_j0[s], seg_j1[s] + 1):
+            b = j_ua[j] if j < seg_j1[s] else seg_u1[s]
+            ra[nr] = a
+            rb[nr] = b
+            e = 0
+            lab = labels[v, a]        # a run starts with its colour (spikes and gaps merged inside)
+            rr = relative[v, a]
+            if b - a + 1 >= min_run_px and lab != 0:
+                A = rr + reg_offset[k]
+                if 0 <= A < n_st:
+                    if lab == CYAN:
+                        e = 1 if is_marker[A] else -1
+                    elif is_marker[A]:
+                        e = -1
+                        if clean_level > 0:
+                            acc = 0.0
+                            for x in range(a, b + 1):
+                                acc += min(gn[v, x], bn[v, x])
+                            if acc < clean_level * (b - a + 1):
+                                e = -min_events
+            ev[nr] = e
+            if e < 0:
+                any_bad = True
+            nr += 1
+            if j < seg_j1[s]:
+                a = j_ub[j]
+        if not any_bad:
+            continue
+        for i in range(nr):
+            if ev[i] >= 0:
+                continue
+            lo = i
+            while lo > 0 and ev[lo] != 1:
+                lo -= 1
+            hi = i
+            while hi < nr - 1 and ev[hi] != 1:
+                hi += 1
+            n_bad = 0
+            for m in range(lo, hi + 1):
+                if ev[m] < 0:
+                    n_bad -= ev[m]
+            if n_bad < min_events:   # one odd run is noise (a marker missed at a rim, a cyan glint)
+                continue
+            if n_sp == spans.shape[0]:
+                grown = np.empty((2 * n_sp, 3), np.int32)
+                grown[:n_sp] = spans
+                spans = grown
+            spans[n_sp, 0] = v                  # unlabelled gaps too (finish_pixels may fill them)
+            spans[n_sp, 1] = ra[lo]
+            spans[n_sp, 2] = rb[hi]
+            n_sp += 1
+    return spans[:n_sp].copy()
+
+
+@njit(cache=True, nogil=True)
+def _flush_pair(table, touched, n_t, out, ne):
+    # the edge of one pair from its votes per offset (table[off + 2048], 4095: overlap only) into
+    # out[2:6, ne] (offset, agree, same, overlap); the table is cleared.  The smallest offset wins ties.
+    best_c = 0
+    best_off = 0
+    tot = 0
+    over = 0
+    for i in range(n_t):
+        kk = touched[i]
+        c = table[kk]
+        table[kk] = 0
+        over += c
+        if kk == 4095:
+            continue
+        tot += c
+        if c > best_c or (c == best_c and kk - 2048 < best_off):
+            best_c = c
+            best_off = kk - 2048
+    out[2, ne] = best_off
+    out[3, ne] = best_c
+    out[4, ne] = tot
+    out[5, ne] = over
+
+
+@njit(cache=True, nogil=True)
+def vertical_votes(labels, seg, rel, n_seg):
+    """Paper step 2 kernel: relate every segment to the overlapping segments of the row above.
+
+    For each pixel whose upper neighbour has the same colour label, the pair (segment, segment
+    above) votes for the offset ``rel_above - rel``.  Returns edges ``(s, t, offset, n_agree,
+    n_same, n_overlap)``: for each overlapping pair the winning offset (the smallest among equal
+    counts), its votes, all same-label votes and all labelled pixel pairs, in the order of the pairs.
+
+    Segments numbered row by row, left to right, with disjoint spans (as :func:`row_segments` and
+    :func:`apply_cuts` make them) meet the pairs in that order along the rows: each pair's votes
+    are counted as it passes (a table per offset), no sort.  Otherwise (a pair seen again after
+    another) :func:`_vertical_votes_sorted` gives the same edges by sorting.
+    """
+    H, W = labels.shape
+    out = np.empty((6, max(H - 1, 0) * W + 1), np.int32)   # s, t, offset, agree, same, overlap (a pair per pixel at most)
+    table = np.zeros(4096, np.int32)     # votes per offset + 2048 of the current pair (4095: overlap only)
+    touched = np.empty(4096, np.int32)
+    n_t = 0
+    ne = 0
+    pair = np.int64(-1)   # current pair s * n_seg + t
+    cur = np.int64(-1)    # current key pair * 4096 + offset + 2048 and its count since the last change
+    cnt = 0
+    for v in range(1, H):
+        sr = seg[v]
+        tr = seg[v - 1]
+        lr = labels[v]
+        lu = labels[v - 1]
+        rr = rel[v]
+        ru = rel[v - 1]
+        for u in range(W):
+            s = sr[u]
+            t = tr[u]
+            if s < 0 or t < 0:
+                continue
+            lab = lr[u]
+            labu = lu[u]
+            if lab == NONE or labu == NONE:
+                continue
+            if lab != labu:
+                off = 2047  # overlap without a vote (colours differ): counted, not voted
+            else:
+                off = ru[u] - rr[u]
+                if off < -2047:
+                    off = -2047
+                elif off > 2046:
+                    off = 2046
+            key = (np.int64(s) * n_seg + t) * 4096 + (off + 2048)
+            if key == cur:
+                cnt += 1
+                continue
+            if cnt > 0:   # the run of one key ends: into the pair's table
+                kk = cur & 4095
+                if table[kk] == 0:
+                    touched[n_t] = kk
+                    n_t += 1
+                table[kk] += cnt
+            p = key >> 12
+            if p != pair:
+                if pair >= 0:
+                    _flush_pair(table, touched, n_t, out, ne)
+                    out[0, ne] = pair // n_seg
+                    out[1, ne] = pair % n_seg
+                    ne += 1
+                    n_t = 0
+                if p < pair:
+                    # pairs out of order (another numbering of the segments): sort instead
+                    return _vertical_votes_sorted(labels, seg, rel, n_seg)
+                pair = p
+            cur = key
+            cnt = 1
+    if cnt > 0:
+        kk = cur & 4095
+        if table[kk] == 0:
+            touched[n_t] = kk
+            n_t += 1
+        table[kk] += cnt
+    if pair >= 0:
+        _flush_pair(table, touched, n_t, out, ne)
+        out[0, ne] = pair // n_seg
+        out[1, ne] = pair % n_seg
+        ne += 1
+    return (out[0, :ne].copy(), out[1, :ne].copy(), out[2, :ne].copy(), out[3, :ne].copy(), out[4, :ne].copy(),
+            out[5, :ne].copy())

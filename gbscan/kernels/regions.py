@@ -1,0 +1,591 @@
+"""The decoder's per-pixel back end: final masks, stripe, column and confidence
+(:func:`finish_pixels`), the regions' marker histograms and offset scores, painting regions,
+the paper's step 7 check, and the rim rule (:func:`rim_mask`).
+
+Part of :mod:`gbscan.kernels` (its docstring has the conventions)."""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from ._common import BLUE, CYAN, GREEN, NONE
+
+
+@njit(cache=True, nogil=True)
+def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, reg_shift, reg_indexed, reg_margin,
+                  contrast, stripe_px, n_stripes, min_contrast, n_codes):
+    """Final masks, absolute stripe, column and confidence (see :func:`gbscan.decode.decode`).
+
+    Reason codes as in ``gbscan.decode``: 0 ok, 4 isolated, 5 inconsistent, 6 unindexed,
+    7 no boundary (other non-zero codes come from ``reason`` and are kept).  One-pixel unlabelled
+    gaps between two pixels of one region join that region (``region`` is updated in place).
+    A reported pixel must lie within one stripe of its colour run's stripe, inside the pattern,
+    and agree within half a stripe with a reported vertical neighbour.  ``column_rel`` is set
+    to NaN in place outside regions.
+
+    One pass over the rows (the vertical check lags one row behind, with the previous row's
+    provisional result kept in a row buffer).  Returns mask (uint8), column (float32), stripe
+    (int32), confidence (float32) (H, W) and the count of each mask code (n_codes,) int64.
+    """
+    H, W = reason.shape
+    mask = np.empty((H, W), np.uint8)
+    column = np.empty((H, W), np.float32)
+    stripe = np.empty((H, W), np.int32)
+    conf = np.empty((H, W), np.float32)
+    counts = np.zeros(n_codes, np.int64)
+    prev_ok = np.zeros(W, np.bool_)
+    prev_col = np.zeros(W, np.float32)
+    cur_ok = np.zeros(W, np.bool_)
+    cur_col = np.zeros(W, np.float32)
+    w = stripe_px
+    half = 0.5 * w
+    inv_mc = 1.0 / max(min_contrast, 1e-3)
+    for v in range(H + 1):
+        if v < H:  # provisional result of row v
+            for u in range(W):
+                m = reason[v, u]
+                mask[v, u] = m
+                if m != 0:
+                    continue
+                r = region[v, u]
+                gap = False
+                if r < 0 and labels[v, u] == NONE and 0 < u < W - 1:
+                    rl = region[v, u - 1]
+                    # (u - 1 was not joined: a joined pixel has no region on both sides)
+                    if rl >= 0 and rl == region[v, u + 1]:
+                        r = rl
+                        region[v, u] = r
+                        gap = True
+                if r < 0:
+                    mask[v, u] = 4
+                    continue
+                if not reg_indexed[r]:
+                    mask[v, u] = 6
+                    continue
+                if inconsistent[v, u]:
+                    mask[v, u] = 5
+                    continue
+                c = column_rel[v, u]
+                if np.isnan(c):
+                    mask[v, u] = 7
+                    continue
+                c = c + reg_shift[r] * w
+                if gap:
+                    k = int(np.floor((c + 0.5) / w))
+                else:
+                    k = relative[v, u] + reg_shift[r]
+                if abs(c - (k * w + 0.5 * (w - 1))) > w or k < 0 or k >= n_stripes:
+                    mask[v, u] = 5
+                    continue
+                column[v, u] = c
+                stripe[v, u] = k
+        f = v - 1
+        if f < 0:
+            continue
+        # row f: vertical continuity against the provisional rows f - 1 and f + 1, then final values
+        for u in range(W):
+            cur_ok[u] = mask[f, u] == 0
+            cur_col[u] = column[f, u]
+        for u in range(W):
+            m = mask[f, u]
+            if m == 0:
+                c = cur_col[u]
+                ok = f > 0 and prev_ok[u] and abs(prev_col[u] - c) <= half
+                if not ok and f + 1 < H and mask[f + 1, u] == 0 and abs(column[f + 1, u] - c) <= half:
+                    ok = True
+                if not ok:
+                    m = 5
+                    mask[f, u] = 5
+            if m != 0:
+                column[f, u] = np.nan
+                stripe[f, u] = -1
+                conf[f, u] = 0.0
+            else:
+                cc = min(max((contrast[f, u] - min_contrast) * inv_mc, 0.0), 1.0)
+                conf[f, u] = 0.25 + 0.75 * cc * reg_margin[region[f, u]]
+            if m < n_codes:
+                counts[m] += 1
+            if region[f, u] < 0:
+                column_rel[f, u] = np.nan
+        for u in range(W):
+            prev_ok[u] = cur_ok[u]
+            prev_col[u] = cur_col[u]
+    return mask, column, stripe, conf, counts
+
+
+@njit(cache=True, nogil=True)
+def region_histograms(labels, relative, region, n_reg):
+    """Per region: relative index range and the pixel counts of cyan and of green/blue per
+    relative index.  Returns ``rmin, rmax`` (n_reg,) and flat ``n_c, n_g`` with region ``k``'s
+    counts at ``start[k] .. start[k] + rmax[k] - rmin[k]``."""
+    H, W = labels.shape
+    rmin = np.full(n_reg, 2 ** 30, np.int64)
+    rmax = np.full(n_reg, -(2 ** 30), np.int64)
+    for v in range(H):
+        for u in range(W):
+            k = region[v, u]
+            if k >= 0:
+                r = relative[v, u]
+                if r < rmin[k]:
+                    rmin[k] = r
+                if r > rmax[k]:
+                    rmax[k] = r
+    start = np.zeros(n_reg + 1, np.int64)
+    for k in range(n_reg):
+        span = rmax[k] - rmin[k] + 1 if rmax[k] >= rmin[k] else 0
+        start[k + 1] = start[k] + span
+    n_c = np.zeros(start[n_reg], np.int64)
+    n_g = np.zeros(start[n_reg], np.int64)
+    for v in range(H):
+        for u in range(W):
+            k = region[v, u]
+            if k >= 0:
+                i = start[k] + relative[v, u] - rmin[k]
+                lab = labels[v, u]
+                if lab == CYAN:
+                    n_c[i] += 1
+                elif lab == GREEN or lab == BLUE:
+                    n_g[i] += 1
+    return rmin, rmax, start, n_c, n_g
+
+
+@njit(cache=True, nogil=True)
+def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, cstart, npx, frac):
+    """The marker matched filter of :func:`gbscan.unwrap.index_regions` for every region, from
+    :func:`region_histograms`: integer counts, the same sums as its ``np.correlate`` form.
+
+    Per region ``k`` returns (all (n_reg,) int64): ``status`` 0 empty, 1 too thin (no relative
+    index with ``min_marker_px`` pixels), 2 no candidate offset, 3 scored, 4 scored but the best
+    candidate is outside the working volume; ``seen`` marker stripes seen; for scored regions the
+    ``offset`` (absolute - relative) of the best candidate (first minimum), its ``evidence`` and
+    ``mismatch`` and the ``runner_up`` (smallest mismatch of the other candidates inside the
+    working volume, ``2**63 // 4`` when there is none: the prior never changes the best candidate,
+    it only rules out runner-ups).  A candidate is inside when it keeps at least ``frac`` of the
+    region's ``npx[k]`` bounded pixels inside their stripes (``cover``, :func:`region_offset_cover`;
+    every candidate is inside when ``npx[k]`` is 0: no prior).
+    Candidate absolute index ``A`` of relative ``rmin``: ``A + c0 >= -2``, ``A + c1 <= n_st + 1``
+    (``c0, c1`` the core's ends), ``A - rmin`` even; positions outside the pattern mismatch every
+    observation."""
+    n_reg = rmin.shape[0]
+    n_st = is_marker.shape[0]
+    status = np.zeros(n_reg, np.int64)
+    seen = np.zeros(n_reg, np.int64)
+    offset = np.zeros(n_reg, np.int64)
+    evidence = np.zeros(n_reg, np.int64)
+    mismatch = np.zeros(n_reg, np.int64)
+    runner = np.zeros(n_reg, np.int64)
+    big = np.iinfo(np.int64).max // 4
+    for k in range(n_reg):
+        r0 = rmin[k]
+        r1 = rmax[k]
+        if r1 < r0:
+            continue
+        span = r1 - r0 + 1
+        cand_A = np.empty(n_st + span + 2, np.int64)
+        cand_mis = np.empty(n_st + span + 2, np.int64)
+        b0 = start[k]
+        n_seen = 0
+        c0 = -1
+        c1 = -1
+        sum_c = 0
+        for j in range(span):
+            if n_c[b0 + j] >= min_marker_px:
+                n_seen += 1
+            if n_c[b0 + j] + n_g[b0 + j] >= min_marker_px:
+                if c0 < 0:
+                    c0 = j
+                c1 = j
+            sum_c += n_c[b0 + j]
+        seen[k] = n_seen
+        if c0 < 0:
+            status[k] = 1
+            continue
+        status[k] = 2
+        best_mis = big
+        best_A = 0
+        best_exp = 0
+        n_cand = 0
+        # A = absolute index of relative r0; the extended position i = A + span (pad = span)
+        for A in range(-span, n_st + 1):
+            if A + c0 < -2 or A + c1 > n_st + 1 or (A - r0) % 2 != 0:
+                continue
+            mis = 0
+            exp = 0
+            for j in range(span):
+                a = A + j
+                c = n_c[b0 + j]
+                g = n_g[b0 + j]
+                if a < 0 or a >= n_st:      # outside: not a marker (cyan mismatches), O = 1
+                    mis += c + g
+                elif is_marker[a]:
+                    mis += g
+                    exp += c + g
+                else:
+                    mis += c
+            cand_A[n_cand] = A
+            cand_mis[n_cand] = mis
+            n_cand += 1
+            if mis < best_mis:
+                best_mis = mis
+                best_A = A
+                best_exp = exp
+        if n_cand == 0:
+            continue
+        second = big
+        need = frac * npx[k]
+        for i in range(n_cand):
+            if cand_A[i] != best_A and cand_mis[i] < second and \
+                    (npx[k] == 0 or cover[cstart[k] + cand_A[i] + span] >= need):
+                second = cand_mis[i]
+        inside = npx[k] == 0 or cover[cstart[k] + best_A + span] >= need
+        status[k] = 3 if inside else 4
+        offset[k] = best_A - r0
+        evidence[k] = sum_c + best_exp
+        mismatch[k] = best_mis
+        runner[k] = second
+    return status, seen, offset, evidence, mismatch, runner
+
+
+@njit(cache=True, nogil=True)
+def region_offset_cover(region, relative, stripe_lo, stripe_hi, rmin, rmax, n_st, step=1):
+    """How many pixels of each region each candidate offset keeps inside their allowed stripes.
+
+    ``stripe_lo, stripe_hi`` (H, W) float32: the absolute stripe indices a pixel can see (NaN: no
+    bound; the pixel is not counted); ``rmin, rmax`` (n_reg,) the regions' relative index ranges
+    (:func:`region_histograms`).  Candidate ``A`` is the absolute index of relative ``rmin[k]``,
+    ``A`` in ``[-span, n_st]`` as in :func:`score_offsets`.  Returns flat ``cover`` (int64) with
+    region ``k``'s count for ``A`` at ``cstart[k] + A + span``, ``cstart`` (n_reg + 1,) and
+    ``npx`` (n_reg,) the region's pixels with bounds (every ``step``-th row and column: a sample
+    is enough for a fraction)."""
+    n_reg = rmin.shape[0]
+    cstart = np.zeros(n_reg + 1, np.int64)
+    for k in range(n_reg):
+        span = rmax[k] - rmin[k] + 1 if rmax[k] >= rmin[k] else 0
+        cstart[k + 1] = cstart[k] + (n_st + span + 2 if span > 0 else 0)
+    diff = np.zeros(cstart[n_reg] + 1, np.int64)
+    npx = np.zeros(n_reg, np.int64)
+    H, W = region.shape
+    for v in range(0, H, step):
+        for u in range(0, W, step):
+            k = region[v, u]
+            if k < 0:
+                continue
+            lo = stripe_lo[v, u]
+            hi = stripe_hi[v, u]
+            if np.isnan(lo) or np.isnan(hi):
+                continue
+            span = rmax[k] - rmin[k] + 1
+            d = relative[v, u] - rmin[k]
+            a = np.int64(np.floor(lo)) - d
+            b = np.int64(np.ceil(hi)) - d
+            if a < -span:
+                a = -span
+            if b > n_st:
+                b = n_st
+            npx[k] += 1
+            if a > b:
+                continue
+            diff[cstart[k] + a + span] += 1
+            diff[cstart[k] + b + span + 1] -= 1
+    cover = np.zeros(cstart[n_reg], np.int64)
+    for k in range(n_reg):
+        acc = 0
+        for i in range(cstart[k], cstart[k + 1]):
+            acc += diff[i]
+            cover[i] = acc
+    return cover, cstart, npx
+
+
+@njit(cache=True, nogil=True)
+def paint_regions(seg, rel, seg_region, seg_P):
+    """Per pixel: region id of its segment (-1), relative index ``rel + P[segment]`` (0 outside
+    segments) and whether it is *isolated*: in a segment of no region (bool)."""
+    H, W = seg.shape
+    region = np.full((H, W), -1, np.int32)
+    relative = np.zeros((H, W), np.int32)
+    isolated = np.zeros((H, W), np.bool_)
+    for v in range(H):
+        for u in range(W):
+            s = seg[v, u]
+            if s >= 0:
+                k = seg_region[s]
+                region[v, u] = k
+                relative[v, u] = rel[v, u] + seg_P[s]
+                isolated[v, u] = k < 0
+    return region, relative, isolated
+
+
+@njit(cache=True, nogil=True)
+def repaint_segments(seg, seg_row, seg_u0, seg_u1, which, seg_region, region, isolated):
+    """In place: ``region`` (H, W) int32 and ``isolated`` (H, W) bool become what
+    :func:`paint_regions` makes of ``seg_region``, rewriting only the pixels of the segments
+    ``which`` (int array): the others' regions are as the images were painted (the decoder's
+    linking gives a few segments a region)."""
+    for i in range(which.size):
+        s = which[i]
+        v = seg_row[s]
+        k = seg_region[s]
+        for u in range(seg_u0[s], seg_u1[s] + 1):
+            if seg[v, u] == s:
+                region[v, u] = k
+                isolated[v, u] = k < 0
+
+
+@njit(cache=True, nogil=True)
+def check_vertical_rows(labels, relative, region, rows, bad):
+    """:func:`check_vertical`'s flags of the rows ``rows`` (int array) recomputed in place in
+    ``bad``: a row's flags depend on it and its two neighbours only."""
+    H, W = labels.shape
+    for i in range(rows.size):
+        v = rows[i]
+        b = bad[v]
+        for u in range(W):
+            b[u] = False
+        la, ka, ra = labels[v], region[v], relative[v]
+        for w in (v - 1, v + 1):
+            if w < 0 or w >= H:
+                continue
+            lb, kb, rb = labels[w], region[w], relative[w]
+            for u in range(W):
+                b[u] = b[u] | _clash(la, ka, ra, lb, kb, rb, u)
+
+
+@njit(cache=True, nogil=True)
+def count_codes(mask, n_codes):
+    """Histogram of a uint8 code image (n_codes bins)."""
+    out = np.zeros(n_codes, np.int64)
+    H, W = mask.shape
+    for v in range(H):
+        for u in range(W):
+            c = mask[v, u]
+            if c < n_codes:
+                out[c] += 1
+    return out
+
+
+@njit(cache=True, nogil=True)
+def spacing_cuts(j_x, seg_j0, seg_j1, ratio):
+    """Junctions where the boundary spacing along a row jumps by more than ``ratio``.
+
+    On one continuous surface the camera distance between consecutive stripe boundaries changes
+    slowly; where a row crosses a depth edge (the colour sequence may look valid there) it jumps.
+    For each segment, each interval between located boundaries is compared with the previous
+    one; when their ratio leaves [1/ratio, ratio] the junction between them is cut.
+    """
+    cut = np.zeros(j_x.shape[0], np.uint8)
+    for s in range(seg_j0.shape[0]):
+        prev_x = np.nan
+        prev_s = np.nan
+        for j in range(seg_j0[s], seg_j1[s]):
+            x = j_x[j]
+            if np.isnan(x):
+                prev_x = np.nan
+                prev_s = np.nan
+                continue
+            if not np.isnan(prev_x):
+                sp = x - prev_x
+                if sp <= 0:
+                    cut[j] = 1
+                elif not np.isnan(prev_s) and (sp > ratio * prev_s or sp * ratio < prev_s):
+                    cut[j - 1] = 1
+                prev_s = sp
+            prev_x = x
+    return cut
+
+
+@njit(cache=True, nogil=True)
+def check_vertical(labels, relative, region):
+    """Paper step 7 kernel: (H, W) bool, a pixel whose upper or lower neighbour has the same
+    colour (not NONE) and region (>= 0) but another relative index."""
+    H, W = labels.shape
+    bad = np.zeros((H, W), np.bool_)
+    for v in range(1, H):
+        # branch-free along the row (vectorised): flag both pixels of every bad vertical pair
+        la, lb = labels[v], labels[v - 1]
+        ka, kb = region[v], region[v - 1]
+        ra, rb = relative[v], relative[v - 1]
+        ba, bb = bad[v], bad[v - 1]
+        for u in range(W):
+            c = _clash(la, ka, ra, lb, kb, rb, u)
+            ba[u] = ba[u] | c
+            bb[u] = bb[u] | c
+    return bad
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _clash(la, ka, ra, lb, kb, rb, u):
+    # step 7's test of one vertical pair at column u (rows a, b: labels, regions, relative
+    # indices): the same colour (not NONE) and region (>= 0) but another index
+    return (la[u] != 0) & (ka[u] >= 0) & (lb[u] == la[u]) & (kb[u] == ka[u]) & (ra[u] != rb[u])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _abs_row(column_rel, region, off1, v, kk, tmp, out, weight):
+    # absolute columns of row v into out (W,) (0 where none) and weight (W,) (1 where one): a
+    # column of an indexed region; an unlabelled gap pixel inside a segment (region -1 with a
+    # column) takes its left neighbour's region.  off1 = [NaN] + reg_off (indexed by region + 1);
+    # kk (W,) int32 and tmp (W,) float32 scratch.  Branch-free loops, one array written per loop
+    # (they vectorise; an in-place select would not), dark rows skipped.
+    W = out.shape[0]
+    reg = region[v]
+    crel = column_rel[v]
+    mx = np.int32(-1)
+    for u in range(W):
+        mx = max(mx, reg[u])
+    if mx < 0:   # no region in the row: no columns
+        for u in range(W):
+            out[u] = 0.0
+        for u in range(W):
+            weight[u] = 0.0
+        return False
+    kk[0] = max(reg[0], -1) + 1
+    a = reg[:W - 1]
+    b = reg[1:]
+    k1 = kk[1:]
+    for i in range(W - 1):
+        k = b[i]
+        k = a[i] if k < 0 else k
+        k1[i] = max(k, -1) + 1
+    for u in range(W):
+        tmp[u] = crel[u] + off1[kk[u]]
+    for u in range(W):
+        weight[u] = np.float32(1.0) if tmp[u] == tmp[u] else np.float32(0.0)
+    for u in range(W):
+        out[u] = tmp[u] if tmp[u] == tmp[u] else np.float32(0.0)
+    return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, rim_code, pull_out):
+    """Mask ``rim_code`` into ``reason`` (H, W) uint8, in place where it is 0, where a column is
+    unreliable near a silhouette or bend (see :func:`gbscan.decode.rim_rule`); returns the count.
+
+    column_rel (H, W) float32 relative columns; region (H, W) int32; reg_off (n_regions,) float32
+    absolute offset (projector px) per region, NaN where the region is not indexed.
+    * *pull*: ``|M[c] - c| > max_pull_px`` (0: off), M the vertical mean over rows
+      ``v - half_px .. v + half_px`` of the finite absolute columns (a box with the variance of the
+      decoder's along-stripe Gaussian when ``half_px ~ sqrt(3) sigma``), by running sums.
+    * *end*: at most ``end_px`` (0: off) px from the end of the pixel's row stretch of columns
+      and as close to a pixel whose reason is 1..3 (no signal: dark, saturated, low contrast).
+    ``pull_out`` (H, W) float32 receives ``M[c] - c`` (pass a (0, 0) array to skip).
+    Row-major with per-image-column accumulators; no image-size temporaries.  Per row: the pull
+    test branch-free over the row, the end test's window only where the window is not all
+    columns (a stretch end), and the few flagged pixels found 8 at a time (the flag rows read as
+    uint64 words), then masked in order (as one sequential pass would).
+    """
+    H, W = column_rel.shape
+    want = pull_out.shape[0] == H and pull_out.shape[1] == W
+    n_ring = 2 * half_px + 2
+    ring = np.empty((n_ring, W), np.float32)   # absolute columns of rows v - half_px - 1 .. v + half_px
+    ring_w = np.empty((n_ring, W), np.float32)  # ... 1 where there is one
+    has = np.zeros(n_ring, np.bool_)            # ... whether the row has region pixels at all
+    num = np.zeros(W, np.float64)
+    den = np.zeros(W, np.float64)
+    kk = np.empty(W, np.int32)
+    tmp = np.empty(W, np.float32)
+    Wp = (W + 7) & ~7
+    flag = np.zeros(Wp, np.uint8)    # pull rule hits
+    need = np.zeros(Wp, np.uint8)    # pixels whose end-rule window must be looked at
+    fin = np.zeros(W, np.uint8)      # 1 where a relative column
+    ok = np.zeros(W, np.uint8)       # 1 where the end rule's window is all columns, inside the image
+    flag64 = flag.view(np.uint64)
+    need64 = need.view(np.uint64)
+    off1 = np.empty(reg_off.shape[0] + 1, np.float32)
+    off1[0] = np.nan
+    off1[1:] = reg_off
+    pull = max_pull_px > 0
+    rc = np.uint8(rim_code)
+    n_rim = 0
+    for v in range(min(half_px, H)):
+        has[v % n_ring] = _abs_row(column_rel, region, off1, v, kk, tmp, ring[v % n_ring], ring_w[v % n_ring])
+        for u in range(W):
+            num[u] += ring[v % n_ring, u]
+            den[u] += ring_w[v % n_ring, u]
+    for v in range(H):
+        va = v + half_px                      # row entering the window
+        vb = v - half_px - 1                  # row leaving it
+        if va < H:
+            rin = ring[va % n_ring]
+            win = ring_w[va % n_ring]
+            has[va % n_ring] = _abs_row(column_rel, region, off1, va, kk, tmp, rin, win)
+            if pull:
+                for u in range(W):                # branch-free running sums
+                    num[u] += rin[u]
+                for u in range(W):
+                    den[u] += win[u]
+        if vb >= 0 and pull:
+            rout = ring[vb % n_ring]
+            wout = ring_w[vb % n_ring]
+            for u in range(W):
+                num[u] -= rout[u]
+            for u in range(W):
+                den[u] -= wout[u]
+        if not has[v % n_ring]:   # no region in row v: nothing to mask
+            continue
+        row = ring[v % n_ring]
+        roww = ring_w[v % n_ring]
+        crel = column_rel[v]
+        anyf = np.uint8(0)
+        if pull:
+            for u in range(W):
+                dev = num[u] - row[u] * den[u]          # den * pull, no division
+                x = np.uint8((roww[u] != 0) & (abs(dev) > max_pull_px * den[u]))
+                flag[u] = x
+                anyf |= x
+            if want:
+                for u in range(W):
+                    if roww[u] != 0:
+                        pull_out[v, u] = (num[u] - row[u] * den[u]) / den[u]
+        else:
+            for u in range(W):
+                flag[u] = 0
+        if end_px > 0:
+            # only a pixel with no column somewhere in its window (or whose window leaves the
+            # image) can be at a stretch end: the window test runs only there (few pixels)
+            for u in range(W):
+                fin[u] = np.uint8(crel[u] == crel[u])
+            for u in range(W):
+                ok[u] = 0
+            if W > 2 * end_px:
+                n_in = W - 2 * end_px
+                oi = ok[end_px:W - end_px]
+                c0 = fin[end_px:W - end_px]
+                for i in range(n_in):
+                    oi[i] = c0[i]
+                for d in range(1, end_px + 1):
+                    lo = fin[end_px - d:W - end_px - d]
+                    hi = fin[end_px + d:W - end_px + d]
+                    for i in range(n_in):
+                        oi[i] &= lo[i] & hi[i]
+            for u in range(W):
+                x = np.uint8((roww[u] != 0) & (flag[u] == 0) & (ok[u] == 0))
+                need[u] = x
+                anyf |= x
+        else:
+            for u in range(W):
+                need[u] = 0
+        if anyf == 0:
+            continue
+        # the flagged pixels, in order: the end rule reads the reasons as masked so far
+        rsn = reason[v]
+        for wi in range(Wp >> 3):
+            if (flag64[wi] | need64[wi]) == 0:
+                continue
+            for u in range(wi * 8, min(wi * 8 + 8, W)):
+                rim = flag[u] != 0
+                if need[u] != 0:
+                    # at the end of the row stretch and next to no signal (reason 1..3), both
+                    # within end_px
+                    at_end = u - end_px < 0 or u + end_px >= W
+                    near_dark = False
+                    for x in range(max(u - end_px, 0), min(u + end_px, W - 1) + 1):
+                        cx = rsn[x]
+                        if x != u and cx >= 1 and cx <= 3:
+                            near_dark = True
+                        if crel[x] != crel[x]:
+                            at_end = True
+                    rim = at_end and near_dark
+                if rim and rsn[u] == 0:
+                    rsn[u] = rc
+                    n_rim += 1
+    return n_rim

@@ -1,0 +1,1080 @@
+"""Paper steps 1-2 and the segment bookkeeping of :mod:`gbscan.unwrap`: runs and segments along
+the rows (:func:`row_segments`), the vertical votes between segments, union-find links, the
+junctions' sub-pixel positions and fits, the columns interpolated between them, cuts.
+
+Part of :mod:`gbscan.kernels` (its docstring has the conventions)."""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from ._common import BLUE, CYAN, GREEN, NONE
+
+
+@njit(cache=True, nogil=True)
+def run_starts(row, rs):
+    """Run-length encode one row of labels (W,) (W >= 1): the runs' first pixels into ``rs[0 ..
+    n-1]`` and ``rs[n] = W`` (rs: (W + 1,) int32); returns n.  Branch-free: every pixel stores its
+    position as the next run's start, and the count advances only where the label changes (noisy
+    rows cost no mispredicted branches)."""
+    W = row.size
+    rs[0] = 0
+    nr = 1
+    a = row[:W - 1]
+    b = row[1:]
+    for u in range(W - 1):
+        rs[nr] = u + 1
+        nr += np.int64(a[u] != b[u])
+    rs[nr] = W
+    return nr
+
+
+@njit(cache=True, nogil=True)
+def _merges(rs, re, rl, left, i, gaps, limit_px):
+    # _merge_runs_pass' test: candidate run i merges with its left neighbour (run ``left``, final
+    # so far) and run i + 1 (branch-free: the operands are all in hand)
+    if gaps:
+        merge = rl[i] == NONE
+    else:
+        merge = (rl[i] != NONE) & (re[left] + 1 == rs[i]) & (re[i] + 1 == rs[i + 1])
+    return merge & (re[i] - rs[i] + 1 <= limit_px) & (rl[left] != NONE) & (rl[left] == rl[i + 1])
+
+
+@njit(cache=True, nogil=True)
+def _merge_runs_pass(rs, re, rl, nr, gaps, limit_px):
+    """One left-to-right merging pass of :func:`row_segments` over the runs ``0 .. nr-1`` of a row
+    (in place; returns the new count).  ``gaps`` False (spikes): a coloured run of at most
+    ``limit_px`` px directly between two runs of one colour is merged with both into the left
+    one; True (gaps): a NONE run of at most ``limit_px`` px between two runs of one colour joins
+    them.  The merged run is then the left neighbour of the next candidate.  One pass (merging by
+    shifting the rest of the row was quadratic).  The runs before the first merge are final as
+    they are: the pass starts there (most rows have none: both passes 0.21 -> 0.08 ms over a 640x480
+    plane)."""
+    if nr < 3:
+        return nr
+    # the first candidate that merges with its untouched neighbours (none: nothing to do)
+    i = 1
+    while i < nr - 1 and not _merges(rs, re, rl, i - 1, i, gaps, limit_px):
+        i += 1
+    if i >= nr - 1:
+        return nr
+    m = i          # runs 0 .. m-1 are final; run i is the candidate, i + 1 its right neighbour
+    while i < nr - 1:
+        if _merges(rs, re, rl, m - 1, i, gaps, limit_px):
+            re[m - 1] = re[i + 1]      # merge m-1, i, i+1
+            i += 2
+        else:
+            rs[m] = rs[i]
+            re[m] = re[i]
+            rl[m] = rl[i]
+            m += 1
+            i += 1
+    while i < nr:
+        rs[m] = rs[i]
+        re[m] = re[i]
+        rl[m] = rl[i]
+        m += 1
+        i += 1
+    return m
+
+
+@njit(cache=True, nogil=True)
+def _end_pixel(rl, rs, re, k, beyond, other):
+    # _marker_flank_pass's end_flank test: run k is one green or blue pixel whose neighbour away
+    # from the marker (run ``beyond``; -1: the image side) is unlabelled, and whose colour
+    # contradicts ``other``, the marker's other flank (green or blue)
+    return ((rl[k] == GREEN or rl[k] == BLUE) and re[k] == rs[k] and (beyond < 0 or rl[beyond] == NONE)
+            and (other == GREEN or other == BLUE) and other != rl[k])
+
+
+@njit(cache=True, nogil=True)
+def _lone_pixels(rs, re, rl, nr, i):
+    # a necessary condition of _end_pixel beside marker run i (1 <= i <= nr - 2): run i - 1 or
+    # i - 2 (i + 1 or i + 2) is one pixel with the image side or an unlabelled run beyond it.
+    # Branch-free over clamped indices (branches here cost more than the test saves).
+    a1 = i - 1
+    a2 = max(i - 2, 0)
+    a3 = max(i - 3, 0)
+    b1 = i + 1
+    b2 = min(i + 2, nr - 1)
+    b3 = min(i + 3, nr - 1)
+    left1 = (re[a1] == rs[a1]) & ((i - 2 < 0) | (rl[a2] == NONE))
+    left2 = (i - 2 >= 0) & (re[a2] == rs[a2]) & ((i - 3 < 0) | (rl[a3] == NONE))
+    right1 = (re[b1] == rs[b1]) & ((i + 2 >= nr) | (rl[b2] == NONE))
+    right2 = (i + 2 < nr) & (re[b2] == rs[b2]) & ((i + 3 >= nr) | (rl[b3] == NONE))
+    return left1 | left2 | right1 | right2
+
+
+@njit(cache=True, nogil=True)
+def _marker_flank_pass(rs, re, rl, nr, limit_px, max_gap_px, end_flank=False):
+    """Absorb the mixed-pixel runs beside a marker (in place; returns the new run count).
+
+    A cyan marker replaces one stripe, so its flanks always carry one colour (``X C X``).  Where a
+    stripe is wide in the camera, the pixels mixing a flank with the marker can be classified as
+    the *other* colour (``X Y C X``, ``Y`` 1-2 px: the local threshold sees only ``X`` and ``C``),
+    which reads as a parity contradiction and would end the segment.  A coloured run of at most
+    ``limit_px`` px, directly between a longer run of the other colour and a cyan run of more than
+    ``2 limit_px`` px, whose
+    colour differs from the marker's other flank (the first coloured run across the marker,
+    through a gap of at most ``max_gap_px``) is merged into its longer neighbour; on both sides of
+    each marker (a gap of at most ``max_gap_px`` between the short run and the marker stays a gap,
+    which the walk bridges).  The legitimate ``X Y C Y X`` (narrow stripes) is left alone: there
+    the flanks agree.  Where stripes are narrow and noisy, a short run beside a marker is often a
+    real stripe whose twin across the marker was lost (``X Y C X`` with ``Y`` real): on the 35
+    scenes of ``scripts/sweep_decode.py`` (left flanks) 362 of the 367 short runs beside a cyan run
+    of 5 px or more were mixed pixels, but only 98 of 255 beside narrower ones; hence the marker's
+    width test.
+
+    ``end_flank``: also at a row stretch's end (``. Y C X``: the run before ``Y`` unlabelled, or
+    ``Y`` the row's first run; mirrored after the marker), a *one*-pixel run ``Y`` whose colour
+    differs from the marker's other flank ``X`` is unlabelled, whatever the marker's width: the
+    mixed pixel of a marker and the dark beyond (a shadow's or a silhouette's edge, where stripes
+    are seen wide).  Otherwise ``Y C`` ends up a fragment of its own and the marker, the
+    strongest evidence for the absolute index, is lost to its surface.  Two-pixel runs are left
+    alone: dropping them put real markers a stripe off their surface (the real face turned 30
+    degrees lost a 2800 px region to an ambiguous index)."""
+    if nr < 2 or limit_px <= 0:
+        return nr
+    DEL = np.uint8(255)
+    n_del = 0
+    for i in range(1, nr - 1):
+        if rl[i] != CYAN:
+            continue
+        wide = re[i] - rs[i] + 1 > 2 * limit_px   # (beside a narrow marker a short run may be a real stripe)
+        if not wide:
+            if not end_flank:
+                continue
+            # the end test needs a one-pixel run l (i - 1 or i - 2) or r (i + 1 or i + 2) with
+            # nothing or an unlabelled run beyond it: most markers have none (0.34 -> 0.07 ms on a
+            # 640x480 plane)
+            if not _lone_pixels(rs, re, rl, nr, i):
+                continue
+        # the first coloured run right of the marker (through a small gap)
+        r = i + 1
+        if rl[r] == NONE and re[r] - rs[r] + 1 <= max_gap_px and r + 1 < nr:
+            r += 1
+        # left flank: run l short, next to the marker (or across a small gap) and adjacent to a
+        # longer run ll of the other colour
+        l = i - 1
+        if rl[l] == NONE and re[l] - rs[l] + 1 <= max_gap_px and l >= 1:
+            l -= 1
+        left_col = rl[l]
+        if l >= 1 and (rl[l] == GREEN or rl[l] == BLUE) and re[l] - rs[l] + 1 <= limit_px:
+            ll = l - 1
+            if wide and (rl[ll] == GREEN or rl[ll] == BLUE) and rl[ll] != rl[l] and re[ll] + 1 == rs[l] \
+                    and re[ll] - rs[ll] + 1 > limit_px and rl[r] == rl[ll]:
+                re[ll] = re[l]
+                rl[l] = DEL
+                n_del += 1
+                left_col = rl[ll]
+        if end_flank and _end_pixel(rl, rs, re, l, l - 1, rl[r]):
+            rl[l] = NONE   # the stretch's first run: one pixel against the marker's other flank
+            left_col = NONE
+        # right flank: the same, mirrored, against the (repaired) left flank's colour
+        r = i + 1
+        if rl[r] == NONE and re[r] - rs[r] + 1 <= max_gap_px and r + 1 < nr:
+            r += 1
+        if r + 1 < nr and (rl[r] == GREEN or rl[r] == BLUE) and re[r] - rs[r] + 1 <= limit_px:
+            rr = r + 1
+            if wide and (rl[rr] == GREEN or rl[rr] == BLUE) and rl[rr] != rl[r] and rs[rr] == re[r] + 1 \
+                    and re[rr] - rs[rr] + 1 > limit_px and left_col == rl[rr]:
+                rs[rr] = rs[r]
+                rl[r] = DEL
+                n_del += 1
+        if end_flank and _end_pixel(rl, rs, re, r, r + 1 if r + 1 < nr else -1, left_col):
+            rl[r] = NONE   # the stretch's last run: one pixel against the marker's other flank
+    if n_del == 0:
+        return nr
+    m = 0
+    for i in range(nr):
+        if rl[i] != DEL:
+            rs[m] = rs[i]
+            re[m] = re[i]
+            rl[m] = rl[i]
+            m += 1
+    return m
+
+
+@njit(cache=True, nogil=True)
+def row_segments(labels, max_gap_px, spike_px, marker_flank_px=0, end_flank=False):
+    """Paper step 1 kernel: unroll each row by the transitions along it.
+
+    Returns per pixel ``seg`` (H, W) int32 (-1 outside segments) and ``rel`` (H, W) int32;
+    per segment ``seg_row, seg_u0, seg_u1`` (inclusive pixel span), ``seg_j0, seg_j1`` (its
+    junctions ``j0 .. j1-1``), ``seg_parity`` (1 if a green or blue run fixed the parity);
+    per junction ``j_seg, j_ua`` (last pixel of the left run), ``j_ub`` (first pixel of the right
+    run), ``j_la, j_lb`` (labels), ``j_rel`` (relative index of the right run = boundary index).
+
+    Robustness inside a row: runs of at most ``spike_px`` pixels flanked on both sides by the
+    same colour are noise and are merged into their neighbours; gaps (NONE) of at most
+    ``max_gap_px`` between different colours are a transition, between equal colours the same
+    stripe; with ``marker_flank_px`` > 0 a run of at most that many px between a marker and a
+    longer run of the other colour, against the marker's other flank, is a mixed-pixel artefact
+    and is absorbed (:func:`_marker_flank_pass`; with ``end_flank`` a 1 px run between a marker
+    and the end of the stretch too); any other gap, or a colour whose parity
+    contradicts the count of transitions (e.g. ``G C B``: a marker is always flanked by equal
+    colours), ends the segment.
+    """
+    H, W = labels.shape
+    seg = np.empty((H, W), np.int32)   # filled row by row, just before the row is walked
+    rel = np.empty((H, W), np.int32)
+    cap_s = H * (W // 2 + 1)
+    seg_row = np.empty(cap_s, np.int32)
+    seg_u0 = np.empty(cap_s, np.int32)
+    seg_u1 = np.empty(cap_s, np.int32)
+    seg_j0 = np.empty(cap_s, np.int32)
+    seg_j1 = np.empty(cap_s, np.int32)
+    seg_par = np.empty(cap_s, np.uint8)
+    cap_j = H * W + 1   # at most W - 1 per row (1-px runs with spike_px=0; H * W // 2 + H could overflow)
+    j_seg = np.empty(cap_j, np.int32)
+    j_ua = np.empty(cap_j, np.int32)
+    j_ub = np.empty(cap_j, np.int32)
+    j_la = np.empty(cap_j, np.uint8)
+    j_lb = np.empty(cap_j, np.uint8)
+    j_rel = np.empty(cap_j, np.int32)
+    rs = np.empty(W + 1, np.int32)
+    re = np.empty(W, np.int32)
+    rl = np.empty(W, np.uint8)
+    ns = 0
+    nj = 0
+    for v in range(H):
+        sr = seg[v]
+        rr = rel[v]
+        sr[:] = -1
+        rr[:] = 0
+        if W == 0:
+            continue
+        # -- run-length encode the row (branch-free)
+        lrow = labels[v]
+        nr = run_starts(lrow, rs)
+        for k in range(nr - 1):
+            re[k] = rs[k + 1] - 1
+            rl[k] = lrow[rs[k]]
+        re[nr - 1] = W - 1
+        rl[nr - 1] = lrow[rs[nr - 1]]
+        # -- spike removal: short run between two equal colours (directly adjacent) -> merge
+        if spike_px > 0:
+            nr = _merge_runs_pass(rs, re, rl, nr, False, spike_px)
+        # -- small gaps: equal colours across a small gap -> one run; else keep the gap as a gap
+        if max_gap_px > 0:
+            nr = _merge_runs_pass(rs, re, rl, nr, True, max_gap_px)
+        # -- mixed pixels beside a marker classified as the other colour (X Y C X -> X C X)
+        if marker_flank_px > 0:
+            nr = _marker_flank_pass(rs, re, rl, nr, marker_flank_px, max_gap_px, end_flank)
+        # -- walk runs into segments
+        k = 0
+        while k < nr:
+            if rl[k] == NONE:
+                k += 1
+                continue
+            # start a segment at run k
+            s = ns
+            ns += 1
+            seg_row[s] = v
+            seg_u0[s] = rs[k]
+            seg_j0[s] = nj
+            # relative index of the first run: parity from its colour (cyan: from the next run)
+            lab0 = rl[k]
+            par_known = 0
+            if lab0 == GREEN:
+                r = 0
+                par_known = 1
+            elif lab0 == BLUE:
+                r = 1
+                par_known = 1
+            else:
+                r = 0
+                # look ahead for the colour after the cyan run (through a small gap)
+                kk = k + 1
+                if kk < nr and rl[kk] == NONE and re[kk] - rs[kk] + 1 <= max_gap_px:
+                    kk += 1
+                if kk < nr and (rl[kk] == GREEN or rl[kk] == BLUE) and rs[kk] - re[kk - 1] == 1:
+                    if rl[kk] == GREEN:
+                        r = 1  # cyan at odd, next green at even
+                    else:
+                        r = 0
+            for uu in range(rs[k], re[k] + 1):
+                sr[uu] = s
+                rr[uu] = r
+            last = k
+            k += 1
+            while k < nr:
+                gap_end = last  # index of the run before the candidate
+                cand = k
+                if rl[cand] == NONE:
+                    if re[cand] - rs[cand] + 1 > max_gap_px or cand + 1 >= nr:
+                        break
+                    cand = k + 1
+                    if rl[cand] == NONE:
+                        break
+                lab = rl[cand]
+                if lab == rl[gap_end]:
+                    break  # same colour across a gap the cleaning did not merge
+                r_new = r + 1
+                if lab == GREEN or lab == BLUE:
+                    want = 0 if lab == GREEN else 1
+                    if (r_new & 1) != want:
+                        if par_known == 0:
+                            # only cyan so far: shift the segment's indices by one
+                            for uu in range(seg_u0[s], re[gap_end] + 1):
+                                if sr[uu] == s:
+                                    rr[uu] += 1
+                            for jj in range(seg_j0[s], nj):
+                                j_rel[jj] += 1
+                            r += 1
+                            r_new += 1
+                        else:
+                            break  # parity contradiction (e.g. G C B): end the segment here
+                    par_known = 1
+                # record the junction between run gap_end and run cand
+                j_seg[nj] = s
+                j_ua[nj] = re[gap_end]
+                j_ub[nj] = rs[cand]
+                j_la[nj] = rl[gap_end]
+                j_lb[nj] = lab
+                j_rel[nj] = r_new
+                nj += 1
+                r = r_new
+                for uu in range(rs[cand], re[cand] + 1):
+                    sr[uu] = s
+                    rr[uu] = r
+                last = cand
+                k = cand + 1
+            seg_u1[s] = re[last]
+            seg_j1[s] = nj
+            seg_par[s] = par_known
+            k = last + 1
+    return (seg, rel, seg_row[:ns].copy(), seg_u0[:ns].copy(), seg_u1[:ns].copy(), seg_j0[:ns].copy(),
+            seg_j1[:ns].copy(), seg_par[:ns].copy(), j_seg[:nj].copy(), j_ua[:nj].copy(), j_ub[:nj].copy(),
+            j_la[:nj].copy(), j_lb[:nj].copy(), j_rel[:nj].copy())
+
+
+@njit(cache=True, nogil=True)
+def _vertical_votes_sorted(labels, seg, rel, n_seg):
+    """:func:`vertical_votes` by one sort of all the (pair, offset) keys: for any numbering of the
+    segments (the fast form needs the pairs in order along the rows and falls back to this one).
+
+    For each pixel whose upper neighbour has the same colour label, the pair (segment, segment
+    above) votes for the offset ``rel_above - rel``.  Returns edges ``(s, t, offset, n_agree,
+    n_same)``: for each overlapping pair the winning offset, its votes and all same-label votes.
+    """
+    H, W = labels.shape
+    cap = H * W // 2 + 16
+    ks = np.empty(cap, np.int64)
+    kn = np.empty(cap, np.int32)
+    n = 0
+    for v in range(1, H):
+        cur = np.int64(-1)
+        cnt = 0
+        for u in range(W):
+            s = seg[v, u]
+            t = seg[v - 1, u]
+            if s < 0 or t < 0:
+                continue
+            lab = labels[v, u]
+            if lab == NONE or labels[v - 1, u] == NONE:
+                continue
+            if lab != labels[v - 1, u]:
+                off = 2047  # overlap without a vote (colours differ): counted, not voted
+            else:
+                off = rel[v - 1, u] - rel[v, u]
+                if off < -2047:
+                    off = -2047
+                elif off > 2046:
+                    off = 2046
+            key = (np.int64(s) * n_seg + t) * 4096 + (off + 2048)
+            if key == cur:
+                cnt += 1
+            else:
+                if cnt > 0:
+                    ks[n] = cur
+                    kn[n] = cnt
+                    n += 1
+                cur = key
+                cnt = 1
+        if cnt > 0:
+            ks[n] = cur
+            kn[n] = cnt
+            n += 1
+    ks = ks[:n]
+    kn = kn[:n]
+    order = np.argsort(ks, kind="mergesort")
+    # aggregate equal keys, then keep the best offset per (s, t) pair
+    e_s = np.empty(n, np.int32)
+    e_t = np.empty(n, np.int32)
+    e_off = np.empty(n, np.int32)
+    e_agree = np.empty(n, np.int32)
+    e_same = np.empty(n, np.int32)
+    e_over = np.empty(n, np.int32)
+    ne = 0
+    i = 0
+    while i < n:
+        pair = ks[order[i]] // 4096
+        best_c = 0
+        best_off = 0
+        tot = 0
+        over = 0
+        while i < n and ks[order[i]] // 4096 == pair:
+            key = ks[order[i]]
+            c = 0
+            while i < n and ks[order[i]] == key:
+                c += kn[order[i]]
+                i += 1
+            over += c
+            if key % 4096 == 4095:
+                continue
+            tot += c
+            if c > best_c:
+                best_c = c
+                best_off = np.int32(key % 4096 - 2048)
+        e_s[ne] = np.int32(pair // n_seg)
+        e_t[ne] = np.int32(pair % n_seg)
+        e_off[ne] = best_off
+        e_agree[ne] = best_c
+        e_same[ne] = tot
+        e_over[ne] = over
+        ne += 1
+    return (e_s[:ne].copy(), e_t[:ne].copy(), e_off[:ne].copy(), e_agree[:ne].copy(), e_same[:ne].copy(),
+            e_over[:ne].copy())
+
+
+@njit(cache=True, nogil=True)
+def chain_lengths(n_seg, e_s, e_t, strong):
+    """Paper step 3 kernel: length of the vertical chain of strong edges through each segment.
+
+    Edges are sorted by ``s`` (segments are numbered row by row, ``t`` lies in the row above).
+    Returns ``up + down - 1``: the number of rows the segment's stripes continue through.
+    """
+    up = np.ones(n_seg, np.int32)
+    down = np.ones(n_seg, np.int32)
+    for i in range(e_s.shape[0]):
+        if strong[i]:
+            c = up[e_t[i]] + 1
+            if c > up[e_s[i]]:
+                up[e_s[i]] = c
+    for i in range(e_s.shape[0] - 1, -1, -1):
+        if strong[i]:
+            c = down[e_s[i]] + 1
+            if c > down[e_t[i]]:
+                down[e_t[i]] = c
+    return up + down - 1
+
+
+@njit(cache=True, nogil=True)
+def _find(parent, pot, x):
+    # returns root and P[x] - P[root], compressing the path
+    root = x
+    acc = 0
+    while parent[root] != root:
+        acc += pot[root]
+        root = parent[root]
+    # compress
+    cur = x
+    rem = acc
+    while parent[cur] != cur:
+        nxt = parent[cur]
+        p = pot[cur]
+        parent[cur] = root
+        pot[cur] = rem
+        rem -= p
+        cur = nxt
+    return root, acc
+
+
+@njit(cache=True, nogil=True)
+def link_segments(parent, pot, size, conflicts, e_s, e_t, e_off, order, use, believable, restrict):
+    """Paper steps 4 and 6 kernel: join segments into regions of mutually consistent indices.
+
+    Union-find with potentials (``parent``, ``pot``, ``size`` updated in place): ``P[s] - P[t] = offset``
+    for an edge (s below t).  Edges are taken in ``order`` (strongest first) where ``use`` is set.
+    An edge that contradicts the potentials already fixed is a *conflict*: it is not applied and
+    is counted on both segments (``conflicts``).  With ``restrict`` a non-believable segment joins
+    at most one region and two regions are never merged through a doubtful segment.
+    """
+    for ii in range(order.shape[0]):
+        i = order[ii]
+        if not use[i]:
+            continue
+        s = e_s[i]
+        t = e_t[i]
+        rs, ps = _find(parent, pot, s)
+        rt, pt = _find(parent, pot, t)
+        if rs == rt:
+            if ps - pt != e_off[i]:
+                conflicts[s] += 1
+                conflicts[t] += 1
+            continue
+        if restrict:
+            # the doubtful side must still be alone; it is attached under the other's root
+            if believable[s] == believable[t]:
+                continue
+            if not believable[s]:
+                if size[rs] != 1:
+                    continue
+                parent[s] = rt
+                pot[s] = e_off[i] + pt
+                size[rt] += 1
+            else:
+                if size[rt] != 1:
+                    continue
+                parent[t] = rs
+                pot[t] = ps - e_off[i]
+                size[rs] += 1
+            continue
+        parent[rs] = rt
+        pot[rs] = e_off[i] - ps + pt
+        size[rt] += size[rs]
+
+
+@njit(cache=True, nogil=True)
+def resolve_roots(parent, pot):
+    """Root and potential ``P[s] - P[root]`` of every segment (after linking)."""
+    n = parent.shape[0]
+    P = np.zeros(n, np.int32)
+    root = np.zeros(n, np.int32)
+    for s in range(n):
+        r, p = _find(parent, pot, s)
+        root[s] = r
+        P[s] = p
+    return root, P
+
+
+@njit(cache=True, nogil=True)
+def subpixel_junctions(gn, bn, seg_row, j_ua, j_ub, j_la, j_lb, seg_u0, seg_u1, j_seg):
+    """Sub-pixel position (camera px, along the row) of every junction (stripe boundary).
+
+    ``gn, bn`` are the colour channels normalised to [0, 1] between their local minimum and
+    maximum.  The boundary is the crossing of the channel(s) that change: ``gn = bn`` for green|blue
+    (both channels swap: a symmetric signal, so gamma and equal blur do not bias it), ``bn = 1/2``
+    for green|cyan and ``gn = 1/2`` for blue|cyan.  The crossing nearest to the runs' junction is
+    searched from the last pixel of the left run - 1 to the first pixel of the right run + 1 and
+    located by linear interpolation between the two samples that bracket it.  NaN if none.
+    Junction ``j`` lies in segment ``j_seg[j]``, on row ``seg_row`` of it.
+    """
+    nj = j_seg.shape[0]
+    out = np.full(nj, np.nan, np.float32)
+    for j in range(nj):
+        s = j_seg[j]
+        v = seg_row[s]
+        la = j_la[j]
+        lb = j_lb[j]
+        a = max(j_ua[j] - 1, seg_u0[s])
+        b = min(j_ub[j] + 1, seg_u1[s])
+        mid = 0.5 * (j_ua[j] + j_ub[j])
+        best = np.nan
+        bestd = 1e9
+        f0 = 0.0
+        for u in range(a, b + 1):
+            if la == CYAN:
+                if lb == GREEN:
+                    f = 0.5 - bn[v, u]
+                else:
+                    f = 0.5 - gn[v, u]
+            elif lb == CYAN:
+                if la == GREEN:
+                    f = bn[v, u] - 0.5
+                else:
+                    f = gn[v, u] - 0.5
+            elif la == GREEN:
+                f = bn[v, u] - gn[v, u]
+            else:
+                f = gn[v, u] - bn[v, u]
+            if u > a and f0 < 0.0 and f >= 0.0:
+                x = (u - 1) + f0 / (f0 - f)
+                d = abs(x - mid)
+                if d < bestd:
+                    bestd = d
+                    best = x
+            f0 = f
+        out[j] = best
+    return out
+
+
+@njit(cache=True, nogil=True)
+def junction_index(j_rel, j_seg, seg_P):
+    """Boundary index of every junction (float64, as :func:`interpolate_columns` takes it): its
+    relative index within its segment ``j_rel`` plus the segment's offset ``seg_P[j_seg]``."""
+    out = np.empty(j_rel.shape[0], np.float64)
+    for j in range(j_rel.shape[0]):
+        out[j] = np.float64(np.int64(j_rel[j]) + np.int64(seg_P[j_seg[j]]))
+    return out
+
+
+@njit(cache=True, nogil=True)
+def fit_junctions(j_x, seg_j0, seg_j1, coef):
+    """Boundary positions refined by a local polynomial fit along each segment.
+
+    ``j_x`` (n_j,) float64 sub-pixel positions (NaN: not located); ``coef`` (2 h + 1,) float64 the
+    weights that evaluate, at the centre, the least-squares polynomial through ``2 h + 1``
+    equally spaced samples (Savitzky-Golay).  Consecutive junctions of a segment are consecutive
+    stripe boundaries, so position against boundary index is a smooth curve on one surface; the
+    fit averages the locator's noise over ``2 h + 1`` boundaries.  A junction keeps its own
+    position where its window leaves the segment or holds an unlocated boundary.  Returns a new
+    (n_j,) float64 array.
+    """
+    out = j_x.copy()
+    h = (coef.shape[0] - 1) // 2
+    for s in range(seg_j0.shape[0]):
+        a = seg_j0[s]
+        b = seg_j1[s]
+        for j in range(a + h, b - h):
+            acc = 0.0
+            ok = True
+            for k in range(-h, h + 1):
+                x = j_x[j + k]
+                if np.isnan(x):
+                    ok = False
+                    break
+                acc += coef[k + h] * x
+            if ok:
+                out[j] = acc
+    return out
+
+
+@njit(cache=True, nogil=True)
+def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j_x, j_bnd, stripe_px,
+                        extrapolate, contact_ratio=0.0, end_fit=0, contact_gap_px=1):
+    """Continuous projector column of every pixel of the accepted segments.
+
+    Between two consecutive boundaries at camera positions ``x_k < x_{k+1}`` with projector columns
+    ``c_k, c_{k+1}`` (``c = index * stripe_px - 0.5``) a pixel at ``u`` gets
+    ``c_k + (u - x_k) (c_{k+1} - c_k) / (x_{k+1} - x_k)``.  Pixels beyond the first/last boundary
+    of a segment are extrapolated with the neighbouring interval's slope up to ``extrapolate``
+    times that interval's width (else left NaN).  Boundaries out of order (non-increasing) are
+    dropped.  ``j_bnd`` is the boundary index (relative or absolute: the caller shifts).
+
+    ``contact_ratio`` > 0: an end of a segment that touches the next segment of its row (at most
+    ``contact_gap_px`` pixels between their spans) is not extrapolated when the boundary spacing across the
+    contact jumps by more than this factor (last interval of one, first of the other; or either
+    has fewer than two located boundaries): the two touch across a depth edge, where the run the
+    edge cuts may carry the other surface's colours (mixed pixels, aliased stripes of a surface
+    seen at grazing incidence, a colour camera's demosaicing).  Segments split on one surface
+    (a misclassified pixel) keep their spacing and are extrapolated as before.
+
+    ``end_fit`` >= 3: the pixels beyond an end of a segment with at least that many located
+    boundaries are extrapolated with the least-squares quadratic of column against camera position
+    through its ``end_fit`` boundaries at that end (:func:`_end_quadratic`) instead of the end
+    interval's straight line: near a silhouette the stripes widen or narrow from boundary to
+    boundary, which the straight line misses (it always errs the same way), and one located
+    position is noisier than the fit.  Where the quadratic's slope at the pixel leaves
+    [1/2, 2] times the straight line's (a fit bent by a stray boundary) the straight line is used.
+    """
+    col = np.full((H, W), np.nan, np.float32)
+    xs = np.empty(W + 2, np.float64)
+    cs = np.empty(W + 2, np.float64)
+    js = np.empty(W + 2, np.int64)
+    ns = seg_row.shape[0]
+    # first and last located interval of every segment (NaN: fewer than two located boundaries)
+    sp_first = np.full(ns, np.nan)
+    sp_last = np.full(ns, np.nan)
+    if contact_ratio > 0:
+        for s in range(ns):
+            n = _located(j_x, seg_j0[s], seg_j1[s], xs, js)
+            if n >= 2:
+                sp_first[s] = xs[1] - xs[0]
+                sp_last[s] = xs[n - 1] - xs[n - 2]
+    for s in range(ns):
+        if not seg_ok[s]:
+            continue
+        v = seg_row[s]
+        n = _located(j_x, seg_j0[s], seg_j1[s], xs, js)
+        if n < 2:
+            continue
+        for i in range(n):
+            cs[i] = j_bnd[js[i]] * stripe_px - 0.5
+        # least-squares quadratics of the end boundaries (ok flag 0: the straight line)
+        fl_ok, fl_a, fl_b, fl_q = 0, 0.0, 0.0, 0.0
+        fr_ok, fr_a, fr_b, fr_q = 0, 0.0, 0.0, 0.0
+        if end_fit >= 3 and n >= end_fit:
+            fl_ok, fl_a, fl_b, fl_q = _end_quadratic(xs, cs, 0, end_fit, xs[0])
+            fr_ok, fr_a, fr_b, fr_q = _end_quadratic(xs, cs, n - end_fit, end_fit, xs[n - 1])
+        crow = col[v]
+        u = seg_u0[s]
+        u_end = seg_u1[s]
+        if contact_ratio > 0:
+            if s > 0 and seg_row[s - 1] == v and seg_u1[s - 1] >= u - 1 - contact_gap_px and \
+                    _spacing_jump(sp_last[s - 1], sp_first[s], contact_ratio):
+                u = max(u, np.int64(np.ceil(xs[0])))
+            if s + 1 < ns and seg_row[s + 1] == v and seg_u0[s + 1] <= u_end + 1 + contact_gap_px and \
+                    _spacing_jump(sp_last[s], sp_first[s + 1], contact_ratio):
+                u_end = min(u_end, np.int64(np.floor(xs[n - 1])))
+        # per interval k: its pixels are those the per-pixel rule gives it (the largest k <= n-2
+        # with u >= xs[k], the first interval also left of xs[0]); only pixels outside
+        # [xs[k], xs[k+1]] (extrapolated: first and last interval) need the reach test, the rest
+        # is one branch-free loop with the interval's slope (the same expression per pixel)
+        k = 0
+        while u <= u_end:
+            while k < n - 2 and u >= xs[k + 1]:
+                k += 1
+            x0 = xs[k]
+            x1 = xs[k + 1]
+            slope = (cs[k + 1] - cs[k]) / (x1 - x0)
+            reach = extrapolate * (x1 - x0)
+            c0 = cs[k]
+            last = u_end if k == n - 2 else min(u_end, np.int64(np.ceil(xs[k + 1])) - 1)
+            # pixels left of x0 (first interval only), then inside [x0, x1], then right of x1
+            while u <= last and u < x0:
+                if not (x0 - u > reach):
+                    crow[u] = _end_value(fl_ok, fl_a, fl_b, fl_q, u - x0, c0 + (u - x0) * slope, slope)
+                u += 1
+            mid = min(last, np.int64(np.floor(x1)))
+            if u <= mid:
+                seg_row_out = crow[u:mid + 1]
+                for i in range(mid + 1 - u):
+                    seg_row_out[i] = c0 + ((u + i) - x0) * slope
+                u = mid + 1
+            while u <= last:
+                if not (u - x1 > reach):
+                    lin = c0 + (u - x0) * slope
+                    crow[u] = _end_value(fr_ok, fr_a, fr_b, fr_q, u - x1, lin, slope) if k == n - 2 else lin
+                u += 1
+    return col
+
+
+@njit(cache=True, nogil=True)
+def _end_quadratic(xs, cs, i0, m, x_ref):
+    # least-squares c = a + b t + q t^2, t = x - x_ref, through the m points xs/cs[i0 : i0 + m]
+    # (normal equations, Cramer's rule); returns (ok, a, b, q), ok 0 when singular
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    s4 = 0.0
+    y0 = 0.0
+    y1 = 0.0
+    y2 = 0.0
+    for i in range(i0, i0 + m):
+        t = xs[i] - x_ref
+        t2 = t * t
+        c = cs[i]
+        s0 += 1.0
+        s1 += t
+        s2 += t2
+        s3 += t2 * t
+        s4 += t2 * t2
+        y0 += c
+        y1 += c * t
+        y2 += c * t2
+    det = s0 * (s2 * s4 - s3 * s3) - s1 * (s1 * s4 - s3 * s2) + s2 * (s1 * s3 - s2 * s2)
+    if not (abs(det) > 1e-9 * max(s4 * s4, 1.0)):
+        return 0, 0.0, 0.0, 0.0
+    a = (y0 * (s2 * s4 - s3 * s3) - s1 * (y1 * s4 - s3 * y2) + s2 * (y1 * s3 - s2 * y2)) / det
+    b = (s0 * (y1 * s4 - y2 * s3) - y0 * (s1 * s4 - s3 * s2) + s2 * (s1 * y2 - y1 * s2)) / det
+    q = (s0 * (s2 * y2 - s3 * y1) - s1 * (s1 * y2 - s2 * y1) + y0 * (s1 * s3 - s2 * s2)) / det
+    return 1, a, b, q
+
+
+@njit(cache=True, nogil=True)
+def _end_value(ok, a, b, q, t, lin, slope):
+    # an extrapolated column from an end quadratic at t px past the end boundary, or ``lin`` (the
+    # straight line of slope ``slope``) when there is none or its slope at t is not within a
+    # factor 2 of the straight line's
+    if ok == 0:
+        return lin
+    d = b + 2.0 * q * t
+    if not (d >= 0.5 * slope and d <= 2.0 * slope):
+        return lin
+    return a + (b + q * t) * t
+
+
+@njit(cache=True, nogil=True)
+def _located(j_x, j0, j1, xs, js):
+    # the located boundaries j0 .. j1-1 of a segment in increasing order (a boundary not at least
+    # 0.05 px right of the last one kept is dropped) into xs, their junction indices into js;
+    # returns their count
+    n = 0
+    for j in range(j0, j1):
+        x = j_x[j]
+        if np.isnan(x):
+            continue
+        if n > 0 and x <= xs[n - 1] + 0.05:
+            continue
+        xs[n] = x
+        js[n] = j
+        n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _spacing_jump(a, b, ratio):
+    # two boundary spacings (camera px) differ by more than ``ratio`` (False if one is unknown)
+    return a > ratio * b or b > ratio * a
+
+
+@njit(cache=True, nogil=True)
+def select_columns(col_all, seg_row, seg_u0, seg_u1, seg_ok):
+    """The columns :func:`interpolate_columns` gives for the segments ``seg_ok`` (n_seg,) uint8,
+    taken from ``col_all`` (H, W) float32, its result for every segment: NaN outside the spans of
+    the accepted segments, a copy inside.  Exact when no two segment spans share a pixel, which is
+    checked (segments numbered row by row, left to right, spans disjoint); returns
+    ``(columns, True)``, or ``(empty, False)`` when the check fails (the caller interpolates).
+    Saves the interpolation's per-pixel work when both results are needed (the decoder's linking)."""
+    n = seg_row.shape[0]
+    for s in range(1, n):
+        if seg_row[s] < seg_row[s - 1] or (seg_row[s] == seg_row[s - 1] and seg_u0[s] <= seg_u1[s - 1]):
+            return np.empty((0, 0), np.float32), False
+    H, W = col_all.shape
+    col = np.full((H, W), np.nan, np.float32)
+    for s in range(n):
+        if seg_ok[s]:
+            v = seg_row[s]
+            for u in range(seg_u0[s], seg_u1[s] + 1):
+                col[v, u] = col_all[v, u]
+    return col, True
+
+
+@njit(cache=True, nogil=True)
+def link_votes(comp, col_rel, col_abs, max_gap_px):
+    """Column-continuity votes of reported pixels for the offset of unindexed components.
+
+    comp (H, W) int32 component id of a candidate pixel (-1 none); col_rel (H, W) float32 its
+    column relative to its component (NaN none); col_abs (H, W) float32 absolute column of the
+    reported pixels (NaN none; disjoint from the candidates).  A candidate pixel whose vertical
+    neighbours (v +- 1, v +- 2) or, along its row past at most ``max_gap_px`` pixels of neither,
+    two horizontal neighbours are reported predicts its absolute column by linear extrapolation
+    of theirs; each prediction is one vote ``pred - col_rel`` (px).  Returns (comp, residual,
+    line, row) with ``line`` = column (vertical votes) or ``-1 - row`` (horizontal votes) and
+    ``row`` the candidate pixel's row.
+    """
+    H, W = comp.shape
+    n = 0
+    for v in range(H):
+        for u in range(W):
+            if comp[v, u] >= 0:
+                n += 1
+    out_c = np.empty(4 * n, np.int32)
+    out_r = np.empty(4 * n, np.float64)
+    out_l = np.empty(4 * n, np.int32)
+    out_v = np.empty(4 * n, np.int32)
+    m = 0
+    for v in range(H):
+        for u in range(W):
+            c = comp[v, u]
+            if c < 0 or np.isnan(col_rel[v, u]):
+                continue
+            x = col_rel[v, u]
+            for d in (-1, 1):
+                q, q2 = v + d, v + 2 * d
+                if 0 <= q2 < H and not np.isnan(col_abs[q, u]) and not np.isnan(col_abs[q2, u]):
+                    out_c[m] = c
+                    out_r[m] = 2.0 * col_abs[q, u] - col_abs[q2, u] - x
+                    out_l[m] = u
+                    out_v[m] = v
+                    m += 1
+                for k in range(1, max_gap_px + 2):
+                    q = u + d * k
+                    q2 = q + 2 * d
+                    if q < 0 or q >= W or comp[v, q] >= 0:
+                        break
+                    if not np.isnan(col_abs[v, q]):
+                        if 0 <= q2 < W and not np.isnan(col_abs[v, q2]):
+                            slope = (col_abs[v, q2] - col_abs[v, q]) / (2.0 * d)
+                            out_c[m] = c
+                            out_r[m] = col_abs[v, q] + slope * (u - q) - x
+                            out_l[m] = -1 - v
+                            out_v[m] = v
+                            m += 1
+                        break
+    return out_c[:m], out_r[:m], out_l[:m], out_v[:m]
+
+
+@njit(cache=True, nogil=True)
+def component_pixels(seg, seg_comp, col):
+    """(H, W) int32 component of each pixel (``seg_comp[seg]``, -1 none) and (H, W) float32 its
+    column ``col`` there (NaN elsewhere); also the number of such pixels with a finite column."""
+    H, W = seg.shape
+    comp = np.full((H, W), -1, np.int32)
+    out = np.full((H, W), np.nan, np.float32)
+    n = 0
+    for v in range(H):
+        for u in range(W):
+            s = seg[v, u]
+            if s >= 0 and seg_comp[s] >= 0:
+                comp[v, u] = seg_comp[s]
+                out[v, u] = col[v, u]
+                if not np.isnan(col[v, u]):
+                    n += 1
+    return comp, out, n
+
+
+@njit(cache=True, nogil=True)
+def component_pixels_spans(seg, seg_comp, col, seg_row, seg_u0, seg_u1):
+    """:func:`component_pixels` visiting only the spans of the segments with ``seg_comp >= 0``
+    (a segment's pixels lie in its span ``seg_row, seg_u0 .. seg_u1``): the same three results,
+    without a pass over the whole image when few segments are candidates."""
+    H, W = seg.shape
+    comp = np.full((H, W), -1, np.int32)
+    out = np.full((H, W), np.nan, np.float32)
+    n = 0
+    for s in range(seg_row.shape[0]):
+        c = seg_comp[s]
+        if c < 0:
+            continue
+        v = seg_row[s]
+        for u in range(seg_u0[s], seg_u1[s] + 1):
+            if seg[v, u] == s:
+                comp[v, u] = c
+                out[v, u] = col[v, u]
+                if not np.isnan(col[v, u]):
+                    n += 1
+    return comp, out, n
+
+
+@njit(cache=True, nogil=True)
+def reported_columns(region, reason, inconsistent, labels, column_rel, reg_off_px):
+    """(H, W) float32 absolute column ``column_rel + reg_off_px[region]`` of the pixels that are
+    reported so far (region indexed -- finite offset --, reason 0, consistent, labelled), NaN
+    elsewhere."""
+    H, W = region.shape
+    out = np.full((H, W), np.nan, np.float32)
+    for v in range(H):
+        for u in range(W):
+            r = region[v, u]
+            if r >= 0 and reason[v, u] == 0 and not inconsistent[v, u] and labels[v, u] != NONE:
+                o = reg_off_px[r]
+                if not np.isnan(o):
+                    out[v, u] = column_rel[v, u] + o
+    return out
+
+
+@njit(cache=True, nogil=True)
+def component_marker_counts(comp, relative, labels, comp_shift, take, is_marker):
+    """Per component (``take[c]``): its pixels and those whose stripe ``relative + comp_shift[c]``
+    is outside the pattern or whose colour contradicts the markers there (cyan on a non-marker
+    stripe, green/blue on a marker stripe).  Returns (n_px, n_bad) int64 arrays like ``take``."""
+    H, W = comp.shape
+    n_st = is_marker.shape[0]
+    n_px = np.zeros(take.shape[0], np.int64)
+    n_bad = np.zeros(take.shape[0], np.int64)
+    for v in range(H):
+        for u in range(W):
+            c = comp[v, u]
+            if c < 0 or not take[c]:
+                continue
+            n_px[c] += 1
+            st = relative[v, u] + comp_shift[c]
+            lb = labels[v, u]
+            if st < 0 or st >= n_st:
+                n_bad[c] += 1
+            elif lb == CYAN and not is_marker[st]:
+                n_bad[c] += 1
+            elif (lb == GREEN or lb == BLUE) and is_marker[st]:
+                n_bad[c] += 1
+    return n_px, n_bad
+
+
+@njit(cache=True, nogil=True)
+def _run_key(labels, seg, rel, v, vn, a, b):
+    # majority (segment, offset) key of the pixels a..b of row v against row vn (-1: no vote)
+    best = np.int64(-1)
+    best_c = 0
+    for u in range(a, b + 1):
+        t = seg[vn, u]
+        if t < 0 or labels[vn, u] != labels[v, u] or labels[v, u] == NONE:
+            continue
+        key = np.int64(t) * 8192 + (rel[vn, u] - rel[v, u] + 4096)
+        c = 0
+        for w in range(a, b + 1):
+            t2 = seg[vn, w]
+            if t2 >= 0 and labels[vn, w] == labels[v, w] and np.int64(t2) * 8192 + (rel[vn, w] - rel[v, w] + 4096) == key:
+                c += 1
+        if c > best_c:
+            best_c = c
+            best = key
+    return best
+
+
+@njit(cache=True, nogil=True)
+def cut_junctions(labels, seg, rel, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_ub, doubtful):
+    """Paper step 5 kernel: where to cut doubtful segments.
+
+    For each run of a doubtful segment, the majority (segment, offset) relation of its pixels
+    to the row above and to the row below is found; a junction is cut when the relation on
+    either side changes between its two runs (an inserted or lost stripe, or a segment bridging
+    two surfaces).  Returns (n_junctions,) uint8 cut flags.
+    """
+    H, W = labels.shape
+    cut = np.zeros(j_ua.shape[0], np.uint8)
+    for s in range(seg_row.shape[0]):
+        if not doubtful[s]:
+            continue
+        v = seg_row[s]
+        prev_up = np.int64(-1)
+        prev_dn = np.int64(-1)
+        a = seg_u0[s]
+        for j in range(seg_j0[s], seg_j1[s] + 1):
+            b = j_ua[j] if j < seg_j1[s] else seg_u1[s]
+            up = _run_key(labels, seg, rel, v, v - 1, a, b) if v > 0 else np.int64(-1)
+            dn = _run_key(labels, seg, rel, v, v + 1, a, b) if v + 1 < H else np.int64(-1)
+            if j > seg_j0[s]:
+                if (up >= 0 and prev_up >= 0 and up != prev_up) or (dn >= 0 and prev_dn >= 0 and dn != prev_dn):
+                    cut[j - 1] = 1
+            if up >= 0:
+                prev_up = up
+            if dn >= 0:
+                prev_dn = dn
+            if j < seg_j1[s]:
+                a = j_ub[j]
+    return cut
+
+
+@njit(cache=True, nogil=True)
+def apply_cuts(seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_par, j_seg, j_ua, j_ub, j_la, j_lb, cut):
+    """Split segments at the cut junctions (the cut junction is dropped); rel is unchanged.
+
+    Returns new per-pixel ``seg`` and the new segment/junction tables (same layout as
+    :func:`row_segments`; pieces keep row order).  A piece's parity flag is inherited.
+    """
+    H, W = seg.shape
+    n_cut = 0
+    for j in range(cut.shape[0]):
+        n_cut += cut[j]
+    ns = seg_row.shape[0] + n_cut
+    nj = j_seg.shape[0] - n_cut
+    o_row = np.empty(ns, np.int32)
+    o_u0 = np.empty(ns, np.int32)
+    o_u1 = np.empty(ns, np.int32)
+    o_j0 = np.empty(ns, np.int32)
+    o_j1 = np.empty(ns, np.int32)
+    o_par = np.empty(ns, np.uint8)
+    o_jseg = np.empty(nj, np.int32)
+    o_jua = np.empty(nj, np.int32)
+    o_jub = np.empty(nj, np.int32)
+    o_jla = np.empty(nj, np.uint8)
+    o_jlb = np.empty(nj, np.uint8)
+    o_jidx = np.empty(nj, np.int32)
+    nseg = seg.copy()
+    k = 0
+    m = 0
+    for s in range(seg_row.shape[0]):
+        v = seg_row[s]
+        o_row[k] = v
+        o_u0[k] = seg_u0[s]
+        o_j0[k] = m
+        o_par[k] = seg_par[s]
+        for j in range(seg_j0[s], seg_j1[s]):
+            if cut[j]:
+                o_u1[k] = j_ua[j]
+                o_j1[k] = m
+                k += 1
+                o_row[k] = v
+                o_u0[k] = j_ub[j]
+                o_j0[k] = m
+                o_par[k] = seg_par[s]
+            else:
+                o_jseg[m] = k
+                o_jua[m] = j_ua[j]
+                o_jub[m] = j_ub[j]
+                o_jla[m] = j_la[j]
+                o_jlb[m] = j_lb[j]
+                o_jidx[m] = j
+                m += 1
+        o_u1[k] = seg_u1[s]
+        o_j1[k] = m
+        k += 1
+    for s in range(ns):
+        v = o_row[s]
+        for u in range(o_u0[s], o_u1[s] + 1):
+            if seg[v, u] >= 0:
+                nseg[v, u] = s
+    return nseg, o_row, o_u0, o_u1, o_j0, o_j1, o_par, o_jseg, o_jua, o_jub, o_jla, o_jlb, o_jidx
