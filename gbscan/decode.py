@@ -239,6 +239,16 @@ class DecodeParams:
         and 91 / 85 / 83 % with none wrong off depth edges (``scripts/resample_study.py``, README
         "Cameras with more pixels").  Paper-rig frames (at most 4.63 px by the estimate) and 10 px
         stripes are never resampled.
+    confidence_spread_px : each reported pixel's confidence is scaled down by its predicted
+        column error ``s`` (projector px, :func:`gbscan.kernels.column_spread`: the column's
+        roughness along the stripes, its distance to the nearest unreported pixel, and a floor):
+        ``0.25 + (c - 0.25) / (1 + (s / confidence_spread_px)^2)``, ``c`` the confidence of the
+        region's marker margin and the pixel's contrast.  Those two are constant over most of a
+        region, so without it the confidence said nothing about the column's accuracy (0: off, the
+        confidence as before).  Reported pixels keep at least 0.25, so the cleaning's default
+        ``min_confidence`` 0.2 drops none of them; a higher one trades points for accuracy.
+        Measured (``scripts/coverage_study.py --confidence``, seeds 0-1): see README "Per-point
+        confidence".
     """
 
     blur_sigma_along_px: float | None = None
@@ -273,6 +283,7 @@ class DecodeParams:
     rim_guard_no_boundary: bool = True
     step_guard_ratio: float = 1.9
     resample: float = 0.0
+    confidence_spread_px: float = 0.15
 
     def __post_init__(self):
         def bad(name, why):
@@ -322,6 +333,9 @@ class DecodeParams:
             bad("rim_bias_px/rim_end_px", "must be >= 0 (0 disables the rule)")
         if not isinstance(self.rim_guard_no_boundary, bool):
             bad("rim_guard_no_boundary", f"must be True or False, got {self.rim_guard_no_boundary!r}")
+        cs = self.confidence_spread_px
+        if isinstance(cs, bool) or not isinstance(cs, (int, float)) or not 0 <= cs < math.inf:
+            bad("confidence_spread_px", f"must be a column error in projector px >= 0 (0: off), got {cs!r}")
         rs = self.resample
         if isinstance(rs, bool) or not isinstance(rs, (int, float)) or not (rs == 0 or 1 <= rs <= MAX_RESAMPLE):
             bad("resample", f"must be 0 (automatic), 1 (never) or a shrink factor in (1, {MAX_RESAMPLE}], got {rs!r}")
@@ -342,7 +356,9 @@ class StripeMap:
 
     column : (H, W) float32 continuous projector column (px), NaN where not reported.
     stripe : (H, W) int32 absolute stripe index of the pixel's colour run, -1 where not reported.
-    confidence : (H, W) float32 in [0, 1], 0 where not reported.
+    confidence : (H, W) float32 in [0, 1], 0 where not reported; at least 0.25 where reported.
+        How far to trust the pixel: the margin of its region's marker index, its contrast, and
+        its predicted column error (``DecodeParams.confidence_spread_px``).
     mask : (H, W) uint8 reason code, 0 = reported (see ``REASONS``).
     relative : (H, W) int32 relative stripe index (consistent within ``region``; also for
         unindexed regions, e.g. with the pure pattern).
@@ -1002,6 +1018,30 @@ def rim_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confiden
 STEP_BOX_PX, STEP_HALF_ROWS, STEP_FLAT, STEP_REACH_SIGMAS = 7, 2, 1.3, 3.0
 
 
+#: :func:`column_spread`'s model of a column's error (projector px; fitted on the simulated sphere,
+#: head, multi-object scene and plane at 8 px stripes, typical preset: the predicted and the actual
+#: error RMS agree within ~1.5x over the middle of the range, the top 3 % is overestimated ~2x):
+#: roughness window (rows either side) and scale, the edge term at 1 px and its reach (px), floor
+SPREAD_ROUGH_ROWS, SPREAD_ROUGH_SCALE, SPREAD_EDGE_PX, SPREAD_EDGE_CAP, SPREAD_FLOOR_PX = 2, 1.5, 0.2, 6, 0.04
+#: the confidence a reported pixel keeps at least (:func:`gbscan.kernels.finish_pixels`' floor)
+CONF_FLOOR = 0.25
+
+
+def column_spread(mask: np.ndarray, column: np.ndarray, confidence: np.ndarray, params: DecodeParams,
+                  want_spread: bool = True) -> np.ndarray | None:
+    """Predicted column error (H, W) float32 projector px of the reported pixels (NaN elsewhere;
+    None unless ``want_spread``), and their ``confidence`` scaled by it in place
+    (``DecodeParams.confidence_spread_px``; see :func:`gbscan.kernels.column_spread` for the
+    model).  mask (H, W) uint8, column (H, W) float32, confidence (H, W) float32 as
+    :func:`decode` makes them."""
+    from . import kernels
+
+    spread = np.empty(mask.shape if want_spread else (0, 0), np.float32)
+    kernels.column_spread(column, mask, confidence, OK, SPREAD_ROUGH_ROWS, SPREAD_ROUGH_SCALE, SPREAD_EDGE_PX,
+                          SPREAD_EDGE_CAP, SPREAD_FLOOR_PX, float(params.confidence_spread_px), CONF_FLOOR, spread)
+    return spread if want_spread else None
+
+
 def step_guard(image_rgb: np.ndarray, mask: np.ndarray, column: np.ndarray, stripe: np.ndarray,
                confidence: np.ndarray, region: np.ndarray, params: DecodeParams,
                counts: np.ndarray | None = None) -> int:
@@ -1476,6 +1516,8 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
                         bool(params.rim_guard_no_boundary))
     n_step = step_guard(img, mask, column, stripe, conf, region, params, counts)
     _unreported(counts, int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED)), ISOLATED)
+    if params.confidence_spread_px > 0:
+        column_spread(mask, column, conf, params, want_spread=False)
     t7 = time.perf_counter()
     ms["finish"] = (t7 - t6) * 1e3
     ms["total"] = (t7 - t0) * 1e3

@@ -33,6 +33,10 @@ from the nearest unreported pixel, split by the side it lies on (toward the proj
 from it), and at 1 ... 4 rows from one along the column.  It says whether the pixels at a rim are
 biased or merely noisy (with ``--decode-param rim_bias_px=0 ...`` it shows what the rim rules mask).
 
+``--confidence`` also prints what a higher ``--min-confidence`` keeps: for thresholds 0.3 ... 0.7,
+the kept % of the lit non-edge pixels, their depth RMS (mm) and worst point (mm), and the column
+error RMS (projector px) of the decoded pixels above and below the threshold.
+
 ``--out DIR`` writes ``coverage_<scene>_s<seed>.png`` per frame: the lit non-edge pixels, kept in
 grey, lost ones coloured by reason (the decoder preview's colours), grazing ones (beyond 70
 degrees) darker, with a legend.
@@ -52,7 +56,8 @@ BINS_DEG = (0, 40, 60, 70, 75, 80, 90)
 
 def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", decode_params=None,
           yaw_deg: float | None = None, depth_range=None, conditions: dict | None = None,
-          baseline_mm: float = 200.0, camera_px: tuple[int, int] = (640, 480), edge_profile: bool = False) -> dict:
+          baseline_mm: float = 200.0, camera_px: tuple[int, int] = (640, 480), edge_profile: bool = False,
+          confidence: bool = False) -> dict:
     from gbscan import sim
     from gbscan.calibfile import calibration_from_rig
     from gbscan.decode import REASONS
@@ -107,6 +112,8 @@ def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", 
         print(f"   lost {label:6s} (% of lit non-edge): {parts if parts else 'none'}")
     if edge_profile:
         res["edge_profile"] = print_edge_profile(rig, r, s.stripemap, good)
+    if confidence:
+        res["confidence"] = print_confidence_table(r, s, good)
     if out is not None:
         res["picture"] = str(picture(out / f"coverage_{name}_s{seed}.png", r.image, good, kept, facing, mask))
     return res
@@ -173,6 +180,37 @@ def print_edge_profile(rig, r, sm, good) -> dict:
     return cells
 
 
+CONF_THRESHOLDS = (0.3, 0.4, 0.5, 0.6, 0.7)
+
+
+def print_confidence_table(r, s, good) -> dict:
+    """The ``--confidence`` table of one scan (see the module's docstring); returns
+    {threshold: (kept fraction, depth RMS mm, worst mm, column RMS above, column RMS below)}."""
+    from gbscan import sim
+
+    sm = s.stripemap
+    conf = s.confidence
+    err = sim.point_errors_mm(r, s.xyz, s.valid)
+    P = np.asarray(r.point, np.float64)
+    col_err = sm.column - np.asarray(r.proj_xy[..., 0], np.float64)
+    decoded = good & sm.valid & np.isfinite(col_err)
+    out = {}
+    parts = []
+    for t in CONF_THRESHOLDS:
+        kept = good & s.valid & (conf >= t)
+        dz = (s.xyz[..., 2] - P[..., 2])[kept]
+        above, below = col_err[decoded & (sm.confidence >= t)], col_err[decoded & (sm.confidence < t)]
+        rms = lambda e: float(np.sqrt(np.mean(e ** 2))) if e.size else float("nan")
+        worst = float(np.max(err[kept & s.valid])) if kept.any() else float("nan")
+        out[t] = (float(kept.sum() / good.sum()), rms(dz), worst, rms(above), rms(below))
+        parts.append(f"{t:.1f}: {100 * out[t][0]:.1f} % / {out[t][1]:.3f} mm / {worst:.2f} mm "
+                     f"(column {out[t][3]:.3f} above, {out[t][4]:.3f} below)")
+    print("   --min-confidence T keeps (% of lit non-edge / depth RMS / worst; column RMS proj px above / below T):")
+    for p in parts:
+        print("      " + p)
+    return out
+
+
 def picture(path: Path, image: np.ndarray, good, kept, facing, mask) -> Path:
     """Lit non-edge pixels: kept grey, lost coloured by reason; grazing ones at half brightness."""
     import matplotlib
@@ -229,6 +267,8 @@ def main(argv=None) -> int:
     ap.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
                     help="a gbscan.decode.DecodeParams field other than the default (repeatable), "
                          "e.g. extrapolate_fit=0")
+    ap.add_argument("--confidence", action="store_true",
+                    help="also print what higher --min-confidence thresholds keep, and the column error above/below")
     ap.add_argument("--edge-profile", action="store_true",
                     help="also print the decoded columns' signed error by distance to the reported area's edges")
     from gbscan.cli_common import (add_rig_arguments, add_ambient_argument, add_bayer_argument, add_jpeg_arguments,
@@ -284,7 +324,7 @@ def main(argv=None) -> int:
     for name in names:
         for seed in seeds:
             res = study(name, seed, args.preset, out, args.bayer, decode_params, args.yaw_deg, args.depth_range,
-                        conditions, args.baseline_mm, args.camera, args.edge_profile)
+                        conditions, args.baseline_mm, args.camera, args.edge_profile, args.confidence)
             if "picture" in res:
                 print(f"   wrote {res['picture']}")
     return 0

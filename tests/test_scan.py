@@ -672,7 +672,7 @@ def test_coverage_study_script_options(capsys):
             mod.main(argv)
         assert e.value.code == 2 and msg in capsys.readouterr().err
     assert mod.main(["--scenes", "plane", "--decode-param", "extrapolate_fit=0", "--baseline-mm", "150",
-                     "--edge-profile"]) == 0
+                     "--edge-profile", "--confidence"]) == 0
     out = capsys.readouterr().out
     assert "decoder extrapolate_fit=0" in out and "## plane, seed 0: kept" in out and "(baseline 150 mm, camera 640x480)" in out
     # the edge profile: a plane's interior columns are within a tenth of a camera px
@@ -680,6 +680,10 @@ def test_coverage_study_script_options(capsys):
     mean, rms = (float(t) for t in line.split("5+ px from any: ")[1].split(" (")[0].split(" / "))
     assert abs(mean) < 0.05 and rms < 0.1, line
     assert "unreported pixel toward the projector" in out and "along the column" in out
+    # the confidence table: a higher threshold keeps fewer points, those it keeps are no worse
+    rows = [x for x in out.splitlines() if x.strip().startswith(("0.3:", "0.5:"))]
+    kept = [float(x.split(":")[1].split("%")[0]) for x in rows]
+    assert len(rows) == 2 and kept[0] >= kept[1] > 0, rows
 
 
 def test_coverage_study_edge_distances():
