@@ -364,7 +364,8 @@ def _bridge_piece(j_x, j0, j1, ratio, cut):
 
 
 # column_spread's row loops, each a function of its own with one output array: inside one large
-# function LLVM vectorised none of them (the same loops alone: 5-10x faster)
+# function LLVM vectorised none of them, nor any loop that writes two arrays (no ``vdivps %ymm`` in
+# its assembly; the kernel took 1.75 ms at 640x480, 0.45 ms this way)
 @njit(cache=True, nogil=True, error_model="numpy")
 def _second_diff_row(ca, cb, cc, out):
     # |c(v-1) - 2 c(v) + c(v+1)| of one row where the three columns are finite (reported), else 0
@@ -472,9 +473,9 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
     ``s = sqrt(floor_px^2 + roughness^2 + edge^2)`` (``floor_px``: the locator's noise on a smooth
     surface far from any edge, which neither term sees).  Where second differences are missing
     from the window, an unreported pixel is within ``rough_rows + 1`` rows (or the image border
-    is), and the edge term stands for them.  The image border counts as reported.  ``column`` must be
-    NaN exactly where the pixel is not reported (as the decoder makes it).  Two passes over the
-    rows, float32, in row loops that vectorise."""
+    is), and the edge term stands for them.  The image border counts as reported.  ``column``
+    must be NaN exactly where the pixel is not reported (as the decoder makes it).  Two passes
+    over the rows, float32, in row loops that vectorise."""
     H, W = mask.shape
     cap = min(edge_cap, 254)
     big = np.float32(np.inf)                 # beyond the edge term's reach
