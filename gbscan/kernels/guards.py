@@ -418,6 +418,23 @@ def _min_into(out, a):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _store_run(run, out):
+    # a row of rows-since-the-last-flag (float32, inf beyond the reach) as uint8 (255: beyond)
+    for u in range(out.size):
+        r = run[u]
+        out[u] = np.uint8(255) if r > np.float32(254.0) else np.uint8(r)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _min_stored(out, a):
+    # out = min(out, the stored distances a (uint8, 255: beyond, inf))
+    inf = np.float32(np.inf)
+    for u in range(out.size):
+        x = a[u]
+        out[u] = min(out[u], inf if x == 255 else np.float32(x))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _add_into(out, a, sign):
     for u in range(out.size):
         out[u] += sign * a[u]
@@ -481,21 +498,21 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
     big = np.float32(np.inf)                 # beyond the edge term's reach
     capf = np.float32(cap)
     h = rough_rows
-    dist = np.empty((H, W), np.float32)      # distance to the nearest unreported pixel (inf: beyond)
+    above = np.empty((H, W), np.uint8)       # rows up to the nearest unreported pixel (255: beyond)
     run = np.full(W, big, np.float32)
     bad = np.zeros(W + 2 * cap, np.float32)  # 1: unreported; padded by cap reported pixels each side
     badr = bad[cap:cap + W]
-    for v in range(H):                       # along the row, and upwards
+    for v in range(H):                       # upwards: the rows above
         _flag_row(mask[v], ok_code, badr)
-        _row_dist(bad, cap, big, dist[v])
         _run_step(run, badr, capf, big)
-        _min_into(dist[v], run)
+        _store_run(run, above[v])
     # downwards, with the roughness's window sums (a ring of second-difference rows) and the result
     nr = 2 * h + 2
     d2 = np.zeros((nr, W), np.float32)
     s = np.zeros(W, np.float32)
     sp2 = np.empty(W, np.float32)
     q = np.empty(W, np.float32)
+    dr = np.empty(W, np.float32)             # the row's distance to the nearest unreported pixel
     run[:] = big
     floor2 = np.float32(floor_px * floor_px)
     edge2 = np.float32(edge_px * edge_px)
@@ -522,8 +539,9 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
             k = (v + h + 1) % nr
             _add_into(s, d2[k], minus)
         _flag_row(mask[v], ok_code, badr)
-        _run_step(run, badr, capf, big)
-        dr = dist[v]
+        _row_dist(bad, cap, big, dr)         # along the row
+        _min_stored(dr, above[v])            # above
+        _run_step(run, badr, capf, big)      # below
         _min_into(dr, run)
         _spread2_row(s, dr, rs, floor2, edge2, sp2)
         if sigma0 > 0:
