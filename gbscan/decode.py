@@ -1023,7 +1023,8 @@ STEP_BOX_PX, STEP_HALF_ROWS, STEP_FLAT, STEP_REACH_SIGMAS = 7, 2, 1.3, 3.0
 #: error RMS agree within ~1.5x over the middle of the range, the top 3 % is overestimated ~2x):
 #: roughness window (rows either side) and scale, the edge term at 1 px and its reach (px), floor
 SPREAD_ROUGH_ROWS, SPREAD_ROUGH_SCALE, SPREAD_EDGE_PX, SPREAD_EDGE_CAP, SPREAD_FLOOR_PX = 2, 1.5, 0.2, 6, 0.04
-#: the confidence a reported pixel keeps at least (:func:`gbscan.kernels.finish_pixels`' floor)
+#: the confidence a reported pixel keeps at least (:func:`gbscan.kernels.finish_pixels` and
+#: :func:`column_spread` both scale toward it)
 CONF_FLOOR = 0.25
 
 
@@ -1511,7 +1512,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     mask, column, stripe, conf, counts = kernels.finish_pixels(
         cls.reason, cls.labels, region, un.relative, column_rel, un.inconsistent, reg_shift, reg_indexed,
         reg_margin, cls.contrast, int(pattern.stripe_px), int(pattern.n_stripes), float(params.min_contrast),
-        len(REASONS))
+        len(REASONS), CONF_FLOOR)
     n_guard = rim_guard(mask, column, stripe, conf, guard_rows(params), counts, guard_end_rows(params),
                         bool(params.rim_guard_no_boundary))
     n_step = step_guard(img, mask, column, stripe, conf, region, params, counts)

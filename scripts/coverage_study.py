@@ -81,7 +81,8 @@ def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", 
     good = r.lit & ~r.depth_edge & np.isfinite(P[..., 2])
     kept = good & s.valid
     dz = (s.xyz[..., 2] - P[..., 2])[kept]
-    err = sim.point_errors_mm(r, s.xyz, s.valid)[s.valid]   # depth-edge pixels: the nearest of 3x3 truths
+    err_map = sim.point_errors_mm(r, s.xyz, s.valid)   # depth-edge pixels: the nearest of 3x3 truths
+    err = err_map[s.valid]
     cam, proj = sim.incidence_deg(rig, r)
     facing = good & (cam < GRAZING_DEG) & (proj < GRAZING_DEG)
     mask = s.stripemap.mask
@@ -113,7 +114,7 @@ def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", 
     if edge_profile:
         res["edge_profile"] = print_edge_profile(rig, r, s.stripemap, good)
     if confidence:
-        res["confidence"] = print_confidence_table(r, s, good)
+        res["confidence"] = print_confidence_table(r, s, good, err_map)
     if out is not None:
         res["picture"] = str(picture(out / f"coverage_{name}_s{seed}.png", r.image, good, kept, facing, mask))
     return res
@@ -152,30 +153,21 @@ def print_edge_profile(rig, r, sm, good) -> dict:
     toward = np.where(proj_right, right <= left, left < right)   # the nearer unreported pixel's side
     horiz = np.minimum(left, right)
     cells = {}
-    lines = []
-    for label, side in (("toward the projector", toward), ("away from it", ~toward)):
-        parts = []
-        for d in (1, 2, 3, 4, 5):
-            m = use & side & ((horiz == d) if d < 5 else (horiz >= d)) & (vert >= 5)
-            if d == 5:
-                m = use & (horiz >= 5) & (vert >= 5)
-            e = err[m]
-            cells[(label, d)] = (int(e.size), float(e.mean()) if e.size else np.nan,
-                                 float(np.sqrt(np.mean(e ** 2))) if e.size else np.nan)
-            if d < 5:
-                parts.append(f"{d}: {e.mean():+.2f} / {np.sqrt(np.mean(e ** 2)):.2f} ({e.size})" if e.size else f"{d}: -")
-        lines.append(f"   along the row, unreported pixel {label:21s} " + " | ".join(parts))
-    parts = []
-    for d in (1, 2, 3, 4):
-        e = err[use & (vert == d) & (horiz >= 5)]
-        cells[("vertical", d)] = (int(e.size), float(e.mean()) if e.size else np.nan,
-                                  float(np.sqrt(np.mean(e ** 2))) if e.size else np.nan)
-        parts.append(f"{d}: {e.mean():+.2f} / {np.sqrt(np.mean(e ** 2)):.2f} ({e.size})" if e.size else f"{d}: -")
-    n5, m5, r5 = cells[("toward the projector", 5)]
+
+    def cell(key, m) -> str:
+        # one cell: (pixels, mean, RMS) of the errors under m, and its text
+        e = err[m]
+        cells[key] = (int(e.size), float(e.mean()) if e.size else np.nan, _rms(e))
+        return f"{key[1]}: {e.mean():+.2f} / {_rms(e):.2f} ({e.size})" if e.size else f"{key[1]}: -"
+
+    cell(("interior", 5), use & (horiz >= 5) & (vert >= 5))
+    n5, m5, r5 = cells[("interior", 5)]
     print("   column error near the reported area's edges, camera px, mean / RMS (pixels) at 1-4 px from the "
           f"nearest unreported pixel; 5+ px from any: {m5:+.2f} / {r5:.2f} ({n5})")
-    for line in lines:
-        print(line)
+    for label, side in (("toward the projector", toward), ("away from it", ~toward)):
+        parts = [cell((label, d), use & side & (horiz == d) & (vert >= 5)) for d in (1, 2, 3, 4)]
+        print(f"   along the row, unreported pixel {label:21s} " + " | ".join(parts))
+    parts = [cell(("vertical", d), use & (vert == d) & (horiz >= 5)) for d in (1, 2, 3, 4)]
     print(f"   along the column (5+ px from one along the row)                " + " | ".join(parts))
     return cells
 
@@ -183,14 +175,16 @@ def print_edge_profile(rig, r, sm, good) -> dict:
 CONF_THRESHOLDS = (0.3, 0.4, 0.5, 0.6, 0.7)
 
 
-def print_confidence_table(r, s, good) -> dict:
-    """The ``--confidence`` table of one scan (see the module's docstring); returns
-    {threshold: (kept fraction, depth RMS mm, worst mm, column RMS above, column RMS below)}."""
-    from gbscan import sim
+def _rms(e: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(e ** 2))) if e.size else float("nan")
 
+
+def print_confidence_table(r, s, good, err_map) -> dict:
+    """The ``--confidence`` table of one scan (see the module's docstring; ``err_map`` (H, W) the
+    scan's point errors, :func:`gbscan.sim.point_errors_mm`); returns
+    {threshold: (kept fraction, depth RMS mm, worst mm, column RMS above, column RMS below)}."""
     sm = s.stripemap
-    conf = s.confidence
-    err = sim.point_errors_mm(r, s.xyz, s.valid)
+    conf = sm.confidence
     P = np.asarray(r.point, np.float64)
     col_err = sm.column - np.asarray(r.proj_xy[..., 0], np.float64)
     decoded = good & sm.valid & np.isfinite(col_err)
@@ -199,10 +193,9 @@ def print_confidence_table(r, s, good) -> dict:
     for t in CONF_THRESHOLDS:
         kept = good & s.valid & (conf >= t)
         dz = (s.xyz[..., 2] - P[..., 2])[kept]
-        above, below = col_err[decoded & (sm.confidence >= t)], col_err[decoded & (sm.confidence < t)]
-        rms = lambda e: float(np.sqrt(np.mean(e ** 2))) if e.size else float("nan")
-        worst = float(np.max(err[kept & s.valid])) if kept.any() else float("nan")
-        out[t] = (float(kept.sum() / good.sum()), rms(dz), worst, rms(above), rms(below))
+        above, below = col_err[decoded & (conf >= t)], col_err[decoded & (conf < t)]
+        worst = float(np.max(err_map[kept])) if kept.any() else float("nan")
+        out[t] = (float(kept.sum() / good.sum()), _rms(dz), worst, _rms(above), _rms(below))
         parts.append(f"{t:.1f}: {100 * out[t][0]:.1f} % / {out[t][1]:.3f} mm / {worst:.2f} mm "
                      f"(column {out[t][3]:.3f} above, {out[t][4]:.3f} below)")
     print("   --min-confidence T keeps (% of lit non-edge / depth RMS / worst; column RMS proj px above / below T):")

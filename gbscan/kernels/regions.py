@@ -13,7 +13,7 @@ from ._common import BLUE, CYAN, GREEN, NONE
 
 @njit(cache=True, nogil=True)
 def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, reg_shift, reg_indexed, reg_margin,
-                  contrast, stripe_px, n_stripes, min_contrast, n_codes):
+                  contrast, stripe_px, n_stripes, min_contrast, n_codes, conf_floor):
     """Final masks, absolute stripe, column and confidence (see :func:`gbscan.decode.decode`).
 
     Reason codes as in ``gbscan.decode``: 0 ok, 4 isolated, 5 inconsistent, 6 unindexed,
@@ -25,7 +25,9 @@ def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, re
 
     One pass over the rows (the vertical check lags one row behind, with the previous row's
     provisional result kept in a row buffer).  Returns mask (uint8), column (float32), stripe
-    (int32), confidence (float32) (H, W) and the count of each mask code (n_codes,) int64.
+    (int32), confidence (float32) (H, W) and the count of each mask code (n_codes,) int64.  A
+    reported pixel's confidence is ``conf_floor + (1 - conf_floor) * contrast term * its region's
+    marker margin``.
     """
     H, W = reason.shape
     mask = np.empty((H, W), np.uint8)
@@ -40,6 +42,7 @@ def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, re
     w = stripe_px
     half = 0.5 * w
     inv_mc = 1.0 / max(min_contrast, 1e-3)
+    conf_span = 1.0 - conf_floor
     for v in range(H + 1):
         if v < H:  # provisional result of row v
             for u in range(W):
@@ -102,7 +105,7 @@ def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, re
                 conf[f, u] = 0.0
             else:
                 cc = min(max((contrast[f, u] - min_contrast) * inv_mc, 0.0), 1.0)
-                conf[f, u] = 0.25 + 0.75 * cc * reg_margin[region[f, u]]
+                conf[f, u] = conf_floor + conf_span * cc * reg_margin[region[f, u]]
             if m < n_codes:
                 counts[m] += 1
             if region[f, u] < 0:
