@@ -1087,7 +1087,9 @@ def _temporal_scan(scanner, scan, prior):
         off_px[sm.region == rid] = off * sm.pattern.stripe_px
     column = np.where(recovered, np.asarray(col_rel, np.float32) + off_px, sm.column)
     conf = np.where(recovered, 0.5 * np.maximum(sm.confidence, 0.5), sm.confidence)  # a prior, not markers
-    new = scanner.reconstruct(column, conf, decoded=sm.valid | recovered)
+    # (the recovered pixels have no predicted column error: NaN, so a max_sigma_mm drops them)
+    sigma = sm.column_sigma if scanner.clean_params.max_sigma_mm is not None else None
+    new = scanner.reconstruct(column, conf, decoded=sm.valid | recovered, column_sigma=sigma)
     new.stripe, new.stripemap = filled, sm
     new.timings_ms = {**scan.timings_ms, "temporal": new.timings_ms.get("total", 0.0)}
     state = TemporalState(filled, np.where(sm.valid | recovered, column, np.nan).astype(np.float32))

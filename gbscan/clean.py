@@ -39,6 +39,7 @@ REASONS = {
     7: "grazing",
     8: "small_cluster",
     9: "gap_edge",
+    10: "high_sigma",
 }
 CODE = {name: code for code, name in REASONS.items()}
 
@@ -60,6 +61,10 @@ class CleanParams:
         plane's depth RMS is 0.09 mm; spikes below it stay within the 3 mm accuracy promise).
     min_cluster_px : 4-connected components smaller than this are dropped
         (None: one pixel in a thousand of the image, 307 at 640x480).
+    max_sigma_mm : drop points whose predicted error along the camera ray
+        (:attr:`gbscan.scan.Scan.sigma_mm`, one standard deviation) is above this or unknown
+        (None, the default: off).  Unlike ``min_confidence`` it means the same on every scene and
+        rig: millimetres.
     max_gap_px, gap_far_px, gap_near_px : the depth-jump test across holes
         (:func:`gap_edge_filter`): a run end whose depth differs by more than ``max_jump`` per px
         of distance from the first in-play pixel beyond a hole of at most ``max_gap_px`` px loses
@@ -81,6 +86,7 @@ class CleanParams:
     max_gap_px: int = 8
     gap_far_px: int = 2
     gap_near_px: int = 0
+    max_sigma_mm: float | None = None
 
     def __post_init__(self):
         checks = [
@@ -94,6 +100,7 @@ class CleanParams:
             (self.min_cluster_px is None or int(self.min_cluster_px) >= 0, "min_cluster_px must be >= 0"),
             (int(self.max_gap_px) >= 0, "max_gap_px must be >= 0"),
             (int(self.gap_far_px) >= 0 and int(self.gap_near_px) >= 0, "gap_far_px and gap_near_px must be >= 0"),
+            (self.max_sigma_mm is None or float(self.max_sigma_mm) > 0, "max_sigma_mm must be > 0 (or None: off)"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -122,6 +129,13 @@ class CleanResult:
 def confidence_filter(confidence: np.ndarray, valid: np.ndarray, min_confidence: float):
     """Drop points whose decoder confidence (H, W) in [0, 1] is below ``min_confidence``."""
     return valid & (np.nan_to_num(confidence, nan=0.0) >= min_confidence), "low_confidence"
+
+
+def sigma_filter(sigma_mm: np.ndarray, valid: np.ndarray, max_sigma_mm: float):
+    """Drop points whose predicted error (H, W) mm (:attr:`gbscan.scan.Scan.sigma_mm`) is above
+    ``max_sigma_mm`` or unknown (NaN)."""
+    with np.errstate(invalid="ignore"):
+        return valid & (np.asarray(sigma_mm) <= max_sigma_mm), "high_sigma"
 
 
 def depth_range_filter(xyz: np.ndarray, valid: np.ndarray, min_depth_mm: float, max_depth_mm: float):
@@ -273,13 +287,16 @@ def _reason_map(valid, xyz) -> np.ndarray:
 
 # -- the whole chain ---------------------------------------------------------------------------
 def clean(xyz: np.ndarray, confidence: np.ndarray | None = None, params: CleanParams | None = None, *,
-          reason: np.ndarray | None = None) -> CleanResult:
+          reason: np.ndarray | None = None, sigma_mm: np.ndarray | None = None) -> CleanResult:
     """Run every filter in order on an organised point map.
 
     xyz : (H, W, 3) float mm, NaN where not reconstructed.
     confidence : (H, W) float in [0, 1] or None (no confidence filter).
     reason : optional (H, W) uint8 codes already assigned upstream (e.g. ``not_decoded``,
         ``no_plane``); pixels with a non-zero code stay rejected with that code.
+    sigma_mm : (H, W) predicted error of each point (mm, :func:`gbscan.triangulate.point_sigma_mm`);
+        required when ``params.max_sigma_mm`` is set (the ``high_sigma`` filter, after the
+        confidence and depth range), ignored otherwise.
 
     Returns a :class:`CleanResult`; ``counts``: ``no_plane`` (non-finite points), ``input``
     (points entering the filters), points removed per filter in order, ``kept``.  Every filter
@@ -310,6 +327,17 @@ def clean(xyz: np.ndarray, confidence: np.ndarray | None = None, params: CleanPa
     if use_conf:
         counts["low_confidence"] = n_conf
     counts["depth_range"] = n_depth
+    if params.max_sigma_mm is not None:
+        if sigma_mm is None:
+            raise GBError("clean: max_sigma_mm is set but no sigma_mm map was given (Scanner passes the "
+                          "decoder's column errors through the triangulation)")
+        sig = np.asarray(sigma_mm)
+        if sig.shape != (H, W):
+            raise GBError(f"clean: sigma_mm {sig.shape} does not match xyz {xyz.shape[:2]}")
+        with np.errstate(invalid="ignore"):
+            high = (reason == 0) & ~(sig <= params.max_sigma_mm)
+        reason[high] = CODE["high_sigma"]
+        counts["high_sigma"] = int(np.count_nonzero(high))
     n_spike, n_jump, n_gap = kernels.clean_spikes_jumps(
         xyz, reason, float(params.outlier_tol), int(params.min_pairs), CODE["outlier"], float(params.max_jump),
         CODE["discontinuity"], int(params.max_gap_px), int(params.gap_far_px), int(params.gap_near_px),

@@ -241,7 +241,9 @@ class DecodeParams:
         stripes are never resampled.
     confidence_spread_px : each reported pixel's confidence is scaled down by its predicted
         column error ``s`` (projector px, :func:`gbscan.kernels.column_spread`: the column's
-        roughness along the stripes, its distance to the nearest unreported pixel, and a floor):
+        roughness along the stripes, its distance to the nearest unreported pixel, and a floor
+        that follows the frame's noise, :func:`spread_floor_px`; kept as
+        ``StripeMap.column_sigma``):
         ``0.25 + (c - 0.25) / (1 + (s / confidence_spread_px)^2)``, ``c`` the confidence of the
         region's marker margin and the pixel's contrast.  Those two are constant over most of a
         region, so without it the confidence said nothing about the column's accuracy (0: off, the
@@ -369,10 +371,17 @@ class StripeMap:
     labels : (H, W) uint8 colour class (NONE/GREEN/BLUE/CYAN).
     stats : counts per reason, regions found/indexed/dropped, per-stage milliseconds.
     stages : intermediate images (only when ``decode(..., keep_stages=True)``).
+    column_sigma : (H, W) float32 predicted error (one standard deviation, projector px) of each
+        reported pixel's ``column``, NaN where not reported (:func:`column_spread`); None when
+        ``DecodeParams.confidence_spread_px`` is 0 (the model is not run).  On the simulator the
+        columns' actual RMS error is 0.85-1.4 times it over the bulk of the pixels and 0.45-0.65
+        times it over the highest few per cent (README "Per-point confidence");
+        :attr:`gbscan.scan.Scan.sigma_mm` turns it into millimetres along the camera ray.
 
     A frame decoded resampled (``DecodeParams.resample``) expands ``relative``, ``region``,
     ``labels`` and ``column_relative`` to its pixels when one of them is first read (a scan reads
-    none of them): the same values, computed later (:class:`_Deferred`).
+    none of them), and ``column_sigma`` when it is first read: the same values, computed later
+    (:class:`_Deferred`).
     """
 
     column: np.ndarray
@@ -386,6 +395,7 @@ class StripeMap:
     pattern: PatternSpec
     stages: dict | None = None
     column_relative: np.ndarray | None = None
+    column_sigma: np.ndarray | None = None
 
     @property
     def valid(self) -> np.ndarray:
@@ -397,6 +407,7 @@ class StripeMap:
         return {
             "column": self.column, "stripe": self.stripe, "confidence": self.confidence, "mask": self.mask,
             "relative": self.relative, "region": self.region, "labels": self.labels,
+            **({} if self.column_sigma is None else {"column_sigma": self.column_sigma}),
             "reasons": np.array([f"{k}:{v}" for k, v in REASONS.items()]),
             "pattern": np.array(json.dumps(self.pattern.to_dict())),
             "stats": np.array(json.dumps(self.stats, default=_json_default)),
@@ -404,25 +415,44 @@ class StripeMap:
 
 
 class _Deferred:
-    """The maps of a resampled decode that a scan does not read (``relative``, ``region``,
-    ``labels``, ``column_relative``: 13 of the 26 bytes a pixel the eight maps take), expanded to the
-    frame's pixels when a StripeMap first reads one of them (:func:`gbscan.kernels.upsample_maps`,
-    all four at once).  It holds the coarse decode's own arrays, so the result does not depend on
-    what is done to the StripeMap's arrays meanwhile, and a StripeMap pickles with the small
-    arrays."""
+    """Maps of a resampled decode that a scan does not read, expanded to the frame's pixels when a
+    StripeMap first reads one of them: ``expand(*args)`` (a function of this module, by name, so
+    that a StripeMap pickles) returns them as a dict.  :func:`_expand_maps`: ``relative``,
+    ``region``, ``labels``, ``column_relative`` (13 of the 26 bytes a pixel the eight maps take;
+    :func:`gbscan.kernels.upsample_maps`, all four at once); :func:`_expand_sigma`:
+    ``column_sigma``.  It holds the coarse decode's own arrays, so the result does not depend on
+    what is done to the StripeMap's arrays meanwhile (``column_sigma`` is NaN where the expanded
+    ``mask`` as decoded reports nothing), and a StripeMap pickles with the small arrays."""
 
-    def __init__(self, args: tuple):
+    def __init__(self, args: tuple, expand: str = "_expand_maps"):
         self.args = args
+        self.expand = expand
         self.maps: dict | None = None
 
     def get(self, name: str) -> np.ndarray:
         if self.maps is None:
-            from . import kernels
-
-            rel, reg, lab, crel = kernels.upsample_maps(*self.args)
-            self.maps = {"relative": rel, "region": reg, "labels": lab, "column_relative": crel}
+            self.maps = globals()[self.expand](*self.args)
             self.args = ()
         return self.maps[name]
+
+
+def _expand_maps(*args) -> dict:
+    from . import kernels
+
+    rel, reg, lab, crel = kernels.upsample_maps(*args)
+    return {"relative": rel, "region": reg, "labels": lab, "column_relative": crel}
+
+
+def _expand_sigma(sigma: np.ndarray, reported: np.ndarray) -> dict:
+    # the coarse pixel nearest to each full pixel (as upsample_stripes picks it), NaN where the
+    # expanded map reports nothing: the first-order expansion carries its coarse pixel's error
+    h, w = sigma.shape
+    H, W = reported.shape
+    ys = np.minimum(((np.arange(H) + 0.5) * (h / H)).astype(np.int64), h - 1)
+    xs = np.minimum(((np.arange(W) + 0.5) * (w / W)).astype(np.int64), w - 1)
+    full = np.take(np.take(sigma, ys, axis=0), xs, axis=1)
+    full[~reported] = np.nan
+    return {"column_sigma": full}
 
 
 class _DeferredField:
@@ -444,7 +474,7 @@ class _DeferredField:
 
 
 # (after the dataclass has taken the fields and column_relative's default from the class)
-for _name in ("relative", "region", "labels", "column_relative"):
+for _name in ("relative", "region", "labels", "column_relative", "column_sigma"):
     setattr(StripeMap, _name, _DeferredField(_name))
 del _name
 
@@ -560,15 +590,22 @@ def auto_blur_sigma(image_rgb: np.ndarray, params: DecodeParams = DecodeParams()
     sequence get the same sigma unless their conditions really differ.  Fewer than 500 lit
     samples: ``FALLBACK_SIGMA_PX`` and SNR 0.
     """
+    snr = frame_snr(image_rgb, params)
+    if snr <= 0:
+        return FALLBACK_SIGMA_PX, 0.0
+    sigma = min(max(params.blur_auto_gain_px / snr, params.blur_auto_min_px), params.blur_auto_max_px)
+    return round(4.0 * sigma) / 4.0, snr
+
+
+def frame_snr(image_rgb: np.ndarray, params: DecodeParams = DecodeParams()) -> float:
+    """The frame's stripe SNR (see :func:`auto_blur_sigma`); 0.0 with fewer than 500 lit samples."""
     from . import kernels
 
     lut = _lut(float(params.camera_gamma))
     noise, mod, n = kernels.stripe_snr(image_rgb, lut, SNR_STEP[0], SNR_STEP[1], float(max(4.0 * params.dark_level, 1.0)))
     if n < 500 or mod <= 0:
-        return FALLBACK_SIGMA_PX, 0.0
-    snr = float(mod) / max(float(noise), 0.05)
-    sigma = min(max(params.blur_auto_gain_px / snr, params.blur_auto_min_px), params.blur_auto_max_px)
-    return round(4.0 * sigma) / 4.0, snr
+        return 0.0
+    return float(mod) / max(float(noise), 0.05)
 
 
 def frame_stripe_px(image_rgb: np.ndarray, params: DecodeParams = DecodeParams()) -> tuple[float, int]:
@@ -662,6 +699,8 @@ def _decode_resampled(img, factor: float, stripe_px_frame: float, pattern: Patte
     # relative, region, labels, column_relative: expanded when first read (a scan never does)
     later = _Deferred((H, W, sm.column, sm.stripe, sm.mask, sm.relative, sm.region, sm.labels,
                        np.ascontiguousarray(crel, dtype=np.float32), float(pattern.stripe_px), NO_BOUNDARY, RIM))
+    # column_sigma: the coarse pixel's, expanded when first read (a scan reads it for sigma_mm only)
+    sigma = None if sm.column_sigma is None else _Deferred((sm.column_sigma, mask == OK), "_expand_sigma")
     t3 = time.perf_counter()
     stats = dict(sm.stats)
     stats.update(_reason_stats(counts[:len(REASONS)]))
@@ -673,7 +712,7 @@ def _decode_resampled(img, factor: float, stripe_px_frame: float, pattern: Patte
     stats["decoded_size"] = [int(w), int(h)]
     if math.isfinite(stripe_px_frame):
         stats["stripe_camera_px"] = round(float(stripe_px_frame), 2)
-    return StripeMap(column, stripe, conf, mask, later, later, later, stats, pattern, sm.stages, later)
+    return StripeMap(column, stripe, conf, mask, later, later, later, stats, pattern, sm.stages, later, sigma)
 
 
 def _gauss1d(sigma: float) -> np.ndarray:
@@ -1023,23 +1062,41 @@ STEP_BOX_PX, STEP_HALF_ROWS, STEP_FLAT, STEP_REACH_SIGMAS = 7, 2, 1.3, 3.0
 #: error RMS agree within ~1.5x over the middle of the range, the top 3 % is overestimated ~2x):
 #: roughness window (rows either side) and scale, the edge term at 1 px and its reach (px), floor
 SPREAD_ROUGH_ROWS, SPREAD_ROUGH_SCALE, SPREAD_EDGE_PX, SPREAD_EDGE_CAP, SPREAD_FLOOR_PX = 2, 1.5, 0.2, 6, 0.04
+#: the floor grows with the frame's noise (:func:`spread_floor_px`): SPREAD_FLOOR_PX at this stripe
+#: SNR (the typical preset's plane, 36.6, where it was fitted) and blur sigma 1 px
+SPREAD_SNR_REF = 36.0
+
+
+def spread_floor_px(snr: float, blur_sigma_px: float) -> float:
+    """The floor of :func:`column_spread`'s model for a frame of stripe SNR ``snr`` (:func:`frame_snr`)
+    decoded with the along-stripe blur ``blur_sigma_px``: the locator's noise on a smooth surface
+    grows as 1 / SNR and shrinks as 1 / sqrt(blur) (the Gaussian averages that many rows' worth of
+    noise), never below ``SPREAD_FLOOR_PX`` (what a noiseless frame's boundaries still miss by:
+    the typical preset's plane, and the clean preset's bias, which this term does not see).
+    Measured (scratch, seed 0, the column error of the lowest quarter of the prediction over its
+    prediction): hard preset plane / sphere / head / real face / multi-object 1.92 / 1.53 / 2.28 /
+    2.17 / 1.64x with the fixed floor, 0.91 / 0.85 / 1.46 / 1.48 / 0.75x with this one; typical head
+    1.32 -> 0.97x, real face 2.41 -> 1.83x.  ``snr`` 0 (unknown): the fixed floor."""
+    if not snr > 0:
+        return SPREAD_FLOOR_PX
+    return max(SPREAD_FLOOR_PX, SPREAD_FLOOR_PX * (SPREAD_SNR_REF / snr) / math.sqrt(max(blur_sigma_px, 1.0)))
 #: the confidence a reported pixel keeps at least (:func:`gbscan.kernels.finish_pixels` and
 #: :func:`column_spread` both scale toward it)
 CONF_FLOOR = 0.25
 
 
 def column_spread(mask: np.ndarray, column: np.ndarray, confidence: np.ndarray, params: DecodeParams,
-                  want_spread: bool = True) -> np.ndarray | None:
+                  want_spread: bool = True, floor_px: float = SPREAD_FLOOR_PX) -> np.ndarray | None:
     """Predicted column error (H, W) float32 projector px of the reported pixels (NaN elsewhere;
     None unless ``want_spread``), and their ``confidence`` scaled by it in place
     (``DecodeParams.confidence_spread_px``; see :func:`gbscan.kernels.column_spread` for the
-    model).  mask (H, W) uint8, column (H, W) float32, confidence (H, W) float32 as
-    :func:`decode` makes them."""
+    model; ``floor_px`` its floor, :func:`spread_floor_px`).  mask (H, W) uint8, column (H, W)
+    float32, confidence (H, W) float32 as :func:`decode` makes them."""
     from . import kernels
 
     spread = np.empty(mask.shape if want_spread else (0, 0), np.float32)
     kernels.column_spread(column, mask, confidence, OK, SPREAD_ROUGH_ROWS, SPREAD_ROUGH_SCALE, SPREAD_EDGE_PX,
-                          SPREAD_EDGE_CAP, SPREAD_FLOOR_PX, float(params.confidence_spread_px), CONF_FLOOR, spread)
+                          SPREAD_EDGE_CAP, float(floor_px), float(params.confidence_spread_px), CONF_FLOOR, spread)
     return spread if want_spread else None
 
 
@@ -1517,8 +1574,12 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
                         bool(params.rim_guard_no_boundary))
     n_step = step_guard(img, mask, column, stripe, conf, region, params, counts)
     _unreported(counts, int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED)), ISOLATED)
+    sigma = None
+    floor = None
     if params.confidence_spread_px > 0:
-        column_spread(mask, column, conf, params, want_spread=False)
+        # (a fixed blur: the frame's noise for the model's floor all the same, ~0.1 ms)
+        floor = spread_floor_px(snr if snr is not None else frame_snr(img, params), float(params.blur_sigma_along_px))
+        sigma = column_spread(mask, column, conf, params, floor_px=floor)
     t7 = time.perf_counter()
     ms["finish"] = (t7 - t6) * 1e3
     ms["total"] = (t7 - t0) * 1e3
@@ -1538,6 +1599,8 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         stats["stripe_camera_px"] = round(float(frame_px), 2)
     if snr is not None:
         stats["snr"] = round(float(snr), 2)
+    if floor is not None:
+        stats["spread_floor_px"] = round(float(floor), 4)
     if not pattern.markers:
         stats["why"] = "pure pattern (no markers): relative stripe index only, see StripeMap.relative/region"
     stages = None
@@ -1548,4 +1611,4 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
                   "index": idx}
     # (column_rel is NaN outside regions: finish_pixels did it in place)
     return StripeMap(column, stripe, conf, mask, un.relative, region, cls.labels, stats, pattern, stages,
-                     column_rel)
+                     column_rel, sigma)

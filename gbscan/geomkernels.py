@@ -472,3 +472,35 @@ def format_obj_faces(tris, buf):  # pragma: no cover
         buf[o] = 10
         o += 1
     return o
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def ray_sigma(p_hi, p_lo, p0, sigma, h, out):  # pragma: no cover
+    """:func:`gbscan.triangulate.point_sigma_mm`'s propagation in one pass: ``out = sigma *
+    |p_hi - p_lo| / 2h`` (the central difference of the points at columns ``x +- h``), one-sided
+    against ``p0`` (the points at ``x``) where ``p_hi`` or ``p_lo`` has none, NaN where
+    ``sigma`` is NaN or no difference exists.  p_hi, p_lo, p0 : (N, 3) float32; sigma, out :
+    (N,) float32."""
+    n = sigma.shape[0]
+    inv2h = 1.0 / (2.0 * h)
+    invh = 1.0 / h
+    for i in range(n):
+        s = sigma[i]
+        if not s == s:
+            out[i] = np.nan
+            continue
+        hi_ok = p_hi[i, 2] == p_hi[i, 2]
+        lo_ok = p_lo[i, 2] == p_lo[i, 2]
+        if hi_ok and lo_ok:
+            a, b, scale = p_hi[i], p_lo[i], inv2h
+        elif hi_ok:
+            a, b, scale = p_hi[i], p0[i], invh
+        elif lo_ok:
+            a, b, scale = p0[i], p_lo[i], invh
+        else:
+            out[i] = np.nan
+            continue
+        dx = np.float64(a[0]) - np.float64(b[0])
+        dy = np.float64(a[1]) - np.float64(b[1])
+        dz = np.float64(a[2]) - np.float64(b[2])
+        out[i] = np.float32(np.sqrt(dx * dx + dy * dy + dz * dz) * scale * abs(s))

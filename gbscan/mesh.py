@@ -7,8 +7,10 @@ Organised point clouds on disk
 ------------------------------
 ``gbscan scan`` writes its cloud as a binary little-endian PLY whose vertices carry, besides
 ``x y z nx ny nz`` (float32, mm), the decoder ``confidence`` (float32) and the camera pixel they
-came from, ``row`` and ``col`` (int32), then, when the scan has its frame, the stripe-free grey
-texture as ``red green blue`` (uchar, :mod:`gbscan.texture`), and a header comment
+came from, ``row`` and ``col`` (int32), then each point's predicted error ``sigma_mm`` (float32,
+mm along the camera ray, one standard deviation: :attr:`gbscan.scan.Scan.sigma_mm`) when the
+decoder gave one, then, when the scan has its frame, the stripe-free grey texture as ``red green
+blue`` (uchar, :mod:`gbscan.texture`), and a header comment
 ``gbscan_grid WIDTH HEIGHT``.  Any PLY reader (MeshLab, CloudCompare, open3d, Blender) reads the
 points, normals and colours and ignores or keeps the extra properties; ``gbscan mesh --method
 grid`` uses them to rebuild the organised grid.  A PLY without them can still be meshed with
@@ -291,7 +293,7 @@ def poisson_mesh(points: np.ndarray, normals: np.ndarray, *, depth: int = 9, den
 class Cloud:
     """A point cloud read from disk: points (N, 3) mm, normals (N, 3) or None, confidence (N,)
     or None, pixel (N, 2) int (row, col) or None, grid_size (width, height) or None, colors
-    (N, 3) uint8 RGB or None."""
+    (N, 3) uint8 RGB or None, sigma_mm (N,) float32 predicted error per point (mm) or None."""
 
     points: np.ndarray
     normals: np.ndarray | None = None
@@ -299,6 +301,7 @@ class Cloud:
     pixel: np.ndarray | None = None
     grid_size: tuple[int, int] | None = None
     colors: np.ndarray | None = None
+    sigma_mm: np.ndarray | None = None
 
     @property
     def organised(self) -> bool:
@@ -369,27 +372,33 @@ def write_cloud_ply(path, points: np.ndarray, normals: np.ndarray | None = None,
 
 
 def write_grid_cloud_ply(path, xyz: np.ndarray, normals: np.ndarray, confidence: np.ndarray,
-                         reason: np.ndarray, colors: np.ndarray | None = None) -> Path:
+                         reason: np.ndarray, colors: np.ndarray | None = None, *,
+                         sigma_mm: np.ndarray | None = None) -> Path:
     """Write the kept pixels (``reason == 0``) of an organised scan as the PLY of
-    :func:`write_cloud_ply` with normals, confidence, pixel, grid size and (when given) colours
-    -- the same bytes -- in one compiled pass over the maps (no per-field gathers).
+    :func:`write_cloud_ply` with normals, confidence, pixel, grid size, (when given) each point's
+    predicted error and colours -- the same bytes -- in one compiled pass over the maps (no
+    per-field gathers but the error's).
 
     xyz, normals : (H, W, 3) float32; confidence : (H, W) float32; reason : (H, W) uint8;
-    colors : (H, W, 3) or (H, W) grey uint8, or None.
+    colors : (H, W, 3) or (H, W) grey uint8, or None; sigma_mm : (H, W) float32 (property
+    ``sigma_mm`` after ``row col``), or None.
     """
     from . import geomkernels as gk
 
     reason = np.ascontiguousarray(reason, dtype=np.uint8)
     H, W = reason.shape
     for name, a, shape in (("xyz", xyz, (H, W, 3)), ("normals", normals, (H, W, 3)),
-                           ("confidence", confidence, (H, W))):
-        if np.shape(a) != shape:
+                           ("confidence", confidence, (H, W)), ("sigma_mm", sigma_mm, (H, W))):
+        if a is not None and np.shape(a) != shape:
             raise GBError(f"write_grid_cloud_ply: {name} is {np.shape(a)}, expected {shape}")
     n = int(np.count_nonzero(reason == 0))
-    arr = np.empty((n, 9), np.float32)
+    arr = np.empty((n, 9 if sigma_mm is None else 10), np.float32)
     gk.pack_cloud(np.ascontiguousarray(xyz, dtype=np.float32), np.ascontiguousarray(normals, dtype=np.float32),
                   np.ascontiguousarray(confidence, dtype=np.float32), reason, True, True, True, arr, arr.view(np.int32))
     fields = [(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz", "confidence")] + [("row", "<i4"), ("col", "<i4")]
+    if sigma_mm is not None:   # (pack_cloud fills the first nine columns, in raster order as this gather)
+        arr[:, 9] = np.asarray(sigma_mm, np.float32)[reason == 0]
+        fields.append(("sigma_mm", "<f4"))
     comments = ["gbscan point cloud, camera frame (x right, y down, z forward), mm", f"gbscan_grid {W} {H}"]
     if colors is not None:
         colors = np.asarray(colors)
@@ -403,8 +412,8 @@ def write_grid_cloud_ply(path, xyz: np.ndarray, normals: np.ndarray, confidence:
 def read_cloud_ply(path) -> Cloud:
     """Read the vertices of a PLY file (binary or ASCII) into a :class:`Cloud`.
 
-    Reads ``x y z`` and, when present, ``nx ny nz``, ``confidence``, ``row col`` and the
-    ``gbscan_grid`` comment.  GBError naming the file if it is not a readable PLY point cloud.
+    Reads ``x y z`` and, when present, ``nx ny nz``, ``confidence``, ``row col``, ``sigma_mm``,
+    ``red green blue`` and the ``gbscan_grid`` comment.  GBError naming the file if it is not a readable PLY point cloud.
     """
     path = Path(path)
     if not path.is_file():
@@ -456,7 +465,8 @@ def read_cloud_ply(path) -> Cloud:
         if col.dtype != np.uint8:  # float colours in [0, 1] (some writers), or wider integers
             col = (_colors_from_unit(col.astype(np.float64)) if np.issubdtype(col.dtype, np.floating)
                    else np.clip(col, 0, 255).astype(np.uint8))
-    return Cloud(pts, nrm, conf, pix, grid if pix is not None else None, col)
+    sig = rec["sigma_mm"].astype(np.float32) if "sigma_mm" in rec else None
+    return Cloud(pts, nrm, conf, pix, grid if pix is not None else None, col, sig)
 
 
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",

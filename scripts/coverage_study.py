@@ -37,6 +37,12 @@ biased or merely noisy (with ``--decode-param rim_bias_px=0 ...`` it shows what 
 the kept % of the lit non-edge pixels, their depth RMS (mm) and worst point (mm), and the column
 error RMS (projector px) of the decoded pixels above and below the threshold.
 
+``--sigma`` also prints how well each kept point's predicted error (``Scan.sigma_mm``, mm along
+the ray, one standard deviation) predicts its actual 3D error: per band of sigma (quantiles 0, 25,
+50, 75, 90, 97, 100 % of the kept lit non-edge points) the predicted and the actual RMS, their
+ratio and the fraction within 2 sigma; then what ``--max-sigma-mm`` keeps for 0.1 ... 0.5 mm
+(kept %, depth RMS, worst point; the scan's columns reconstructed again with the filter on).
+
 ``--out DIR`` writes ``coverage_<scene>_s<seed>.png`` per frame: the lit non-edge pixels, kept in
 grey, lost ones coloured by reason (the decoder preview's colours), grazing ones (beyond 70
 degrees) darker, with a legend.
@@ -57,7 +63,7 @@ BINS_DEG = (0, 40, 60, 70, 75, 80, 90)
 def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", decode_params=None,
           yaw_deg: float | None = None, depth_range=None, conditions: dict | None = None,
           baseline_mm: float = 200.0, camera_px: tuple[int, int] = (640, 480), edge_profile: bool = False,
-          confidence: bool = False) -> dict:
+          confidence: bool = False, sigma: bool = False) -> dict:
     from gbscan import sim
     from gbscan.calibfile import calibration_from_rig
     from gbscan.decode import REASONS
@@ -76,7 +82,8 @@ def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", 
 
     clean = CleanParams() if depth_range is None else CleanParams(min_depth_mm=depth_range[0],
                                                                    max_depth_mm=depth_range[1])
-    s = Scanner(calibration_from_rig(rig, spec), decode_params=decode_params, clean_params=clean).scan(r.image)
+    scanner = Scanner(calibration_from_rig(rig, spec), decode_params=decode_params, clean_params=clean)
+    s = scanner.scan(r.image)
     P = r.point.astype(np.float64)
     good = r.lit & ~r.depth_edge & np.isfinite(P[..., 2])
     kept = good & s.valid
@@ -115,6 +122,8 @@ def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", 
         res["edge_profile"] = print_edge_profile(rig, r, s.stripemap, good)
     if confidence:
         res["confidence"] = print_confidence_table(r, s, good, err_map)
+    if sigma:
+        res["sigma"] = print_sigma_table(r, s, good, err_map, scanner)
     if out is not None:
         res["picture"] = str(picture(out / f"coverage_{name}_s{seed}.png", r.image, good, kept, facing, mask))
     return res
@@ -204,6 +213,57 @@ def print_confidence_table(r, s, good, err_map) -> dict:
     return out
 
 
+SIGMA_QUANTILES = (0.0, 0.25, 0.5, 0.75, 0.9, 0.97, 1.0)
+SIGMA_THRESHOLDS_MM = (0.1, 0.15, 0.2, 0.3, 0.5)
+
+
+def print_sigma_table(r, s, good, err_map, scanner) -> dict:
+    """The ``--sigma`` tables of one scan (see the module's docstring); returns {"bands": [(lo, hi,
+    n, predicted RMS, actual RMS, fraction within 2 sigma)], "max_sigma_mm": {T: (kept fraction,
+    depth RMS mm, worst mm)}}."""
+    import dataclasses
+
+    sig = s.sigma_mm
+    if sig is None:
+        print("   --sigma: the scan has no predicted error (decoder confidence_spread_px 0)")
+        return {}
+    sel = good & s.valid
+    e, sg = err_map[sel], sig[sel]
+    qs = np.quantile(sg, SIGMA_QUANTILES)
+    bands = []
+    print("   predicted error sigma_mm against the actual 3D error (kept lit non-edge points, by band of sigma):")
+    for k, (lo, hi) in enumerate(zip(qs[:-1], qs[1:])):
+        m = (sg >= lo) & ((sg < hi) if k < len(qs) - 2 else (sg <= hi))
+        pred, act = _rms(sg[m]), _rms(e[m])
+        within = float(np.mean(e[m] < 2 * sg[m])) if m.any() else float("nan")
+        bands.append((float(lo), float(hi), int(m.sum()), pred, act, within))
+        print(f"      {100 * SIGMA_QUANTILES[k]:3.0f}-{100 * SIGMA_QUANTILES[k + 1]:3.0f} % ({lo:.3f}-{hi:.3f} mm): "
+              f"predicted {pred:.3f}, actual RMS {act:.3f} mm (x{act / pred:.2f}), within 2 sigma {100 * within:.1f} %")
+    P = np.asarray(r.point, np.float64)
+    sm = s.stripemap
+    from gbscan import sim
+
+    out = {}
+    parts = []
+    for t in SIGMA_THRESHOLDS_MM:
+        saved = scanner.clean_params     # the same scanner (its rays and planes), the filter on
+        scanner.clean_params = dataclasses.replace(saved, max_sigma_mm=t)
+        try:
+            fs = scanner.reconstruct(sm.column, sm.confidence, decoded=sm.valid, column_sigma=sm.column_sigma)
+        finally:
+            scanner.clean_params = saved
+        kept = good & fs.valid
+        dz = (fs.xyz[..., 2] - P[..., 2])[kept]
+        em = sim.point_errors_mm(r, fs.xyz, fs.valid)
+        worst = float(np.max(em[kept])) if kept.any() else float("nan")
+        out[t] = (float(kept.sum() / good.sum()), _rms(dz), worst)
+        parts.append(f"{t:.2f} mm: {100 * out[t][0]:.1f} % / {out[t][1]:.3f} mm / {worst:.2f} mm")
+    print("   --max-sigma-mm T keeps (% of lit non-edge / depth RMS / worst):")
+    for p_ in parts:
+        print("      " + p_)
+    return {"bands": bands, "max_sigma_mm": out}
+
+
 def picture(path: Path, image: np.ndarray, good, kept, facing, mask) -> Path:
     """Lit non-edge pixels: kept grey, lost coloured by reason; grazing ones at half brightness."""
     import matplotlib
@@ -262,6 +322,9 @@ def main(argv=None) -> int:
                          "e.g. extrapolate_fit=0")
     ap.add_argument("--confidence", action="store_true",
                     help="also print what higher --min-confidence thresholds keep, and the column error above/below")
+    ap.add_argument("--sigma", action="store_true",
+                    help="also print how the points' predicted error (sigma_mm) matches their actual error, and "
+                         "what --max-sigma-mm thresholds keep")
     ap.add_argument("--edge-profile", action="store_true",
                     help="also print the decoded columns' signed error by distance to the reported area's edges")
     from gbscan.cli_common import (add_rig_arguments, add_ambient_argument, add_bayer_argument, add_jpeg_arguments,
@@ -317,7 +380,7 @@ def main(argv=None) -> int:
     for name in names:
         for seed in seeds:
             res = study(name, seed, args.preset, out, args.bayer, decode_params, args.yaw_deg, args.depth_range,
-                        conditions, args.baseline_mm, args.camera, args.edge_profile, args.confidence)
+                        conditions, args.baseline_mm, args.camera, args.edge_profile, args.confidence, args.sigma)
             if "picture" in res:
                 print(f"   wrote {res['picture']}")
     return 0

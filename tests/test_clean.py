@@ -5,7 +5,8 @@ from test_triangulate import pixel_rays, tilted_plane, truth
 
 from gbscan.calibfile import calibration_from_rig
 from gbscan.clean import (CODE, CleanParams, clean, cluster_filter, confidence_filter, depth_range_filter,
-                          discontinuity_filter, gap_edge_filter, grazing_filter, grid_normals, outlier_filter)
+                          discontinuity_filter, gap_edge_filter, grazing_filter, grid_normals, outlier_filter,
+                          sigma_filter)
 from gbscan.errors import GBError
 from gbscan.pattern import PatternSpec
 from gbscan.rig import paper_rig
@@ -243,10 +244,16 @@ def test_clean_is_the_filters_in_order(scene):
     bad_xyz[300:310, 300:310, 2] = 5.0                             # out of the depth range
     conf = rng.uniform(0.0, 1.0, xyz.shape[:2]).astype(np.float32)  # 20% below min_confidence
     conf[100:140, 200:260] = np.nan                                  # counts as 0
+    sigma = rng.uniform(0.0, 0.35, xyz.shape[:2]).astype(np.float32)  # predicted error (mm): ~14% above 0.3
+    sigma[400:420, 100:300] = np.nan                                  # unknown: dropped
     upstream = np.zeros(xyz.shape[:2], np.uint8)
     upstream[:, :20] = CODE["not_decoded"]
-    params = CleanParams(max_angle_deg=70.0)
-    res = clean(bad_xyz, conf, params, reason=upstream)
+    params = CleanParams(max_angle_deg=70.0, max_sigma_mm=0.3)
+    res = clean(bad_xyz, conf, params, reason=upstream, sigma_mm=sigma)
+    with pytest.raises(GBError, match="sigma_mm"):
+        clean(bad_xyz, conf, params, reason=upstream)
+    with pytest.raises(GBError, match="sigma_mm"):
+        clean(bad_xyz, conf, params, reason=upstream, sigma_mm=sigma[:, 1:])
 
     reason = upstream.copy()
     finite = np.isfinite(bad_xyz).all(-1)
@@ -254,6 +261,7 @@ def test_clean_is_the_filters_in_order(scene):
     valid = reason == 0
     chain = [lambda v: confidence_filter(conf, v, params.min_confidence),
              lambda v: depth_range_filter(bad_xyz, v, params.min_depth_mm, params.max_depth_mm),
+             lambda v: sigma_filter(sigma, v, params.max_sigma_mm),
              lambda v: outlier_filter(bad_xyz, v, params.outlier_tol, params.min_pairs),
              lambda v: discontinuity_filter(bad_xyz, v, params.max_jump),
              lambda v: gap_edge_filter(bad_xyz, v, params.max_jump, params.max_gap_px, params.gap_far_px,

@@ -577,6 +577,29 @@ def test_confidence_ranks_the_column_error():
     assert np.unique(sm0.confidence[ok]).size <= 3
 
 
+def test_spread_floor_follows_the_frames_noise():
+    """The model's floor (gbscan.decode.spread_floor_px): 0.04 px at the typical plane's SNR (36) and
+    blur 1 px, as 1 / SNR and 1 / sqrt(blur) from there, never below 0.04, the fixed floor when the
+    SNR is unknown.  A decode records it; a fixed blur still measures the SNR for it (and still
+    reports no "snr", which names the automatic blur's).  The column error (column_sigma) is NaN
+    exactly where nothing is reported, and at least the floor elsewhere."""
+    from gbscan.decode import SPREAD_FLOOR_PX, frame_snr, spread_floor_px
+
+    assert spread_floor_px(36.0, 1.0) == pytest.approx(0.04)
+    assert spread_floor_px(6.0, 3.0) == pytest.approx(0.04 * 6.0 / np.sqrt(3.0))
+    assert spread_floor_px(12.0, 0.5) == pytest.approx(0.12)        # a blur below 1 px counts as 1
+    assert spread_floor_px(180.0, 1.0) == spread_floor_px(0.0, 2.0) == spread_floor_px(float("nan"), 1.0) == \
+        SPREAD_FLOOR_PX
+    r = render("sphere")
+    sm = decode(r.image, PatternSpec())
+    assert sm.stats["spread_floor_px"] == pytest.approx(spread_floor_px(sm.stats["snr"], 1.0), abs=1e-4)
+    fixed = decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=2.0))
+    assert "snr" not in fixed.stats
+    assert fixed.stats["spread_floor_px"] == pytest.approx(spread_floor_px(frame_snr(r.image), 2.0), abs=1e-4)
+    cs = sm.column_sigma
+    assert np.array_equal(np.isfinite(cs), sm.valid) and cs[sm.valid].min() >= sm.stats["spread_floor_px"] - 1e-6
+
+
 def test_confidence_spread_param_is_validated():
     for bad in (-0.1, float("nan"), float("inf"), True, "0.1"):
         with pytest.raises(GBError, match="confidence_spread_px"):

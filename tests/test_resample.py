@@ -242,6 +242,15 @@ def test_other_maps_are_expanded_when_first_read(wide):
     for k in lazy:
         np.testing.assert_array_equal(getattr(twin, k), getattr(sm, k))
         np.testing.assert_array_equal(getattr(fresh, k), getattr(sm, k))
+    # column_sigma likewise, on its own: the nearest coarse pixel's predicted column error (projector px:
+    # the same units at both sizes), NaN exactly where the expanded map reports nothing as decoded
+    assert isinstance(fresh.__dict__["column_sigma"], _Deferred) and isinstance(sm.__dict__["column_sigma"], _Deferred)
+    cs = sm.column_sigma
+    assert cs.shape == (H, W) and cs.dtype == np.float32
+    assert np.array_equal(np.isfinite(cs), ok) and ok.mean() > 0.3
+    np.testing.assert_array_equal(cs[ok], small.column_sigma[near][ok])
+    np.testing.assert_array_equal(twin.column_sigma, cs)
+    assert not isinstance(fresh.__dict__["relative"], _Deferred)   # (fresh's four maps were read above)
 
 
 def test_shrink_frame_is_a_linear_light_mean():

@@ -420,7 +420,17 @@ def test_sim_scan_command_end_to_end(tmp_path):
     assert ok.sum() > 0.8 * r.lit.sum()
     assert np.nanmedian(np.abs(xyz[..., 2] - r.point[..., 2])[ok]) < 0.3
     assert (tmp_path / "mesh.stl").stat().st_size > 84
-    assert len(read_cloud_ply(tmp_path / "cloud.ply").points) == ok.sum()
+    cloud = read_cloud_ply(tmp_path / "cloud.ply")
+    assert len(cloud.points) == ok.sum()
+    # each point's predicted error rides along (mm); --max-sigma-mm keeps the points within it
+    assert cloud.sigma_mm is not None and np.isfinite(cloud.sigma_mm).all() and 0.03 < np.median(cloud.sigma_mm) < 0.5
+    p = subprocess.run([sys.executable, "-m", "gbscan.cli", "scan", str(img), "--calib", str(cal),
+                        "-o", str(tmp_path / "strict.ply"), "--max-sigma-mm", "0.2", "--preview", str(tmp_path / "prev")],
+                       capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    assert "high_sigma" in p.stdout and (tmp_path / "prev" / "sigma.png").stat().st_size > 1000
+    strict = read_cloud_ply(tmp_path / "strict.ply")
+    assert strict.sigma_mm.max() <= 0.2 and 0.3 * len(cloud.points) < len(strict.points) < len(cloud.points)
 
 
 def test_decoder_and_cleaning_flags_are_one_set_across_commands():
@@ -449,9 +459,9 @@ def test_decoder_and_cleaning_flags_are_one_set_across_commands():
         text = p.format_help()
         assert "--local-window-px" in text and "--window-px" not in text and "--window " not in text
         if mod is not decode_cmd:
-            a = p.parse_args(head + ["--max-jump", "0.02", "--clean-param", "normal_step_px=3"])
+            a = p.parse_args(head + ["--max-jump", "0.02", "--clean-param", "normal_step_px=3", "--max-sigma-mm", "0.25"])
             c = scan_cmd.clean_params_from_args(a)
-            assert (c.max_jump, c.normal_step_px) == (0.02, 3)
+            assert (c.max_jump, c.normal_step_px, c.max_sigma_mm) == (0.02, 3, 0.25)
     p = _Parser()
     batch_cmd.add_arguments(p)
     assert scan_cmd.clean_params_from_args(p.parse_args(heads[batch_cmd]), none_if_default=True) is None
@@ -672,7 +682,7 @@ def test_coverage_study_script_options(capsys):
             mod.main(argv)
         assert e.value.code == 2 and msg in capsys.readouterr().err
     assert mod.main(["--scenes", "plane", "--decode-param", "extrapolate_fit=0", "--baseline-mm", "150",
-                     "--edge-profile", "--confidence"]) == 0
+                     "--edge-profile", "--confidence", "--sigma"]) == 0
     out = capsys.readouterr().out
     assert "decoder extrapolate_fit=0" in out and "## plane, seed 0: kept" in out and "(baseline 150 mm, camera 640x480)" in out
     # the edge profile: a plane's interior columns are within a tenth of a camera px
@@ -684,6 +694,15 @@ def test_coverage_study_script_options(capsys):
     rows = [x for x in out.splitlines() if x.strip().startswith(("0.3:", "0.5:"))]
     kept = [float(x.split(":")[1].split("%")[0]) for x in rows]
     assert len(rows) == 2 and kept[0] >= kept[1] > 0, rows
+    # the sigma tables: six bands whose predicted and actual RMS are near each other, then thresholds
+    # that keep fewer points as they tighten
+    bands = [x for x in out.splitlines() if "predicted" in x and "actual RMS" in x]
+    assert len(bands) == 6
+    ratios = [float(x.split("(x")[1].split(")")[0]) for x in bands]
+    assert all(0.3 < r_ < 2.0 for r_ in ratios), bands
+    rows = [x for x in out.splitlines() if x.strip().startswith(("0.10 mm:", "0.50 mm:"))]
+    kept = [float(x.split(":")[1].split("%")[0]) for x in rows]
+    assert len(rows) == 2 and 0 < kept[0] <= kept[1], rows
 
 
 def test_coverage_study_edge_distances():
@@ -706,3 +725,87 @@ def test_coverage_study_edge_distances():
     assert right[0].tolist()[:6] == [5, 4, 3, 2, 1, 0] and left[0, 6] == 1
     assert vert[:, 1].tolist() == [2, 1, 0, 1, 2] and vert[:, 5].tolist() == [0, 1, 2, 3, 4]
     assert (vert[:, 0] >= big - 5).all()
+
+
+# -- each point's predicted error in mm (Scan.sigma_mm) ------------------------------------------------
+@pytest.mark.slow
+def test_sigma_mm_predicts_the_points_error_on_a_sphere_and_its_filter_keeps_the_accurate_ones(tmp_path):
+    """On the simulated sphere (true calibration, typical preset) the decoder's per-pixel column error
+    through the triangulation predicts each kept point's 3D error: measured (seed 0) actual / predicted
+    RMS 0.88-1.14 in the five lower sixths of sigma, 0.58 over the top 3 % (conservative); |error| <
+    2 sigma for 93-99 % of each bin.  The test asks for 0.7-1.4 on the lower three quarters, at least
+    88 % within 2 sigma overall, and a ranking: the top quarter's error RMS at least twice the lowest
+    half's.  ``max_sigma_mm`` then keeps only points whose sigma is within it (measured 0.2 mm: 83.5 %
+    kept, error RMS 0.095 -> 0.071 mm), and the PLY carries the same values."""
+    from gbscan import sim
+    from gbscan.clean import CleanParams
+    from gbscan.pattern import render_pattern
+
+    r, s = sim_scan("sphere")
+    sig = s.sigma_mm
+    assert sig is s.sigma_mm and sig.dtype == np.float32       # computed once
+    assert np.array_equal(np.isfinite(sig), s.valid)
+    err = sim.point_errors_mm(r, s.xyz, s.valid)
+    good = r.lit & ~r.depth_edge & s.valid
+    e, sg = err[good], sig[good]
+    q25, q50, q75 = np.quantile(sg, [0.25, 0.5, 0.75])
+    for lo, hi in ((0, q25), (q25, q50), (q50, q75)):
+        m = (sg >= lo) & (sg < hi)
+        ratio = np.sqrt(np.mean(e[m] ** 2)) / np.sqrt(np.mean(sg[m] ** 2))
+        assert 0.7 < ratio < 1.4, (lo, hi, ratio)
+    assert np.mean(e < 2 * sg) > 0.88
+    assert np.sqrt(np.mean(e[sg >= q75] ** 2)) > 2 * np.sqrt(np.mean(e[sg < q50] ** 2))
+    # the filter: only points within max_sigma_mm, fewer and more accurate, counted under their reason
+    rig, spec = sim.paper_rig(), PatternSpec()
+    f = Scanner(calibration_from_rig(rig, spec), clean_params=CleanParams(max_sigma_mm=0.2)).scan(r.image)
+    assert f.counts["high_sigma"] > 0 and (f.reason == 10).sum() == f.counts["high_sigma"]
+    assert np.nanmax(f.sigma_mm) <= 0.2 and f.n_points < s.n_points
+    kept = r.lit & ~r.depth_edge & f.valid
+    assert np.sqrt(np.mean(err[kept & s.valid] ** 2)) < 0.85 * np.sqrt(np.mean(e ** 2))
+    np.testing.assert_array_equal(f.sigma_mm[f.valid], s.sigma_mm[f.valid])
+    s.save_ply(tmp_path / "c.ply")
+    c = read_cloud_ply(tmp_path / "c.ply")
+    np.testing.assert_array_equal(c.sigma_mm, s.point_sigma_mm)
+    assert c.colors is not None and c.organised   # the other properties still read
+
+
+def test_sigma_mm_needs_a_column_error(tmp_path, scanner, scene, rig):
+    """No column error, no sigma: a decode with the model off or external columns without one give
+    None, their PLY no sigma_mm property, and max_sigma_mm refuses them with a message; external columns
+    with an error map get one (NaN where the map is)."""
+    from gbscan import sim
+    from gbscan.clean import CleanParams
+    from gbscan.decode import DecodeParams
+    from gbscan.pattern import render_pattern
+
+    p, col, _ = scene
+    ext = scanner.reconstruct(col)
+    assert ext.sigma_mm is None and ext.point_sigma_mm is None
+    ext.save_ply(tmp_path / "ext.ply")
+    assert read_cloud_ply(tmp_path / "ext.ply").sigma_mm is None
+    cs = np.where(np.isfinite(col), np.float32(0.1), np.nan).astype(np.float32)
+    cs[240, :320] = np.nan
+    withe = scanner.reconstruct(col, column_sigma=cs)
+    sig = withe.sigma_mm
+    assert np.isfinite(sig[withe.valid & np.isfinite(cs)]).all() and np.isnan(sig[240, :320]).all()
+    assert 0.01 < np.nanmedian(sig) < 0.2      # 0.1 projector px at 600-760 mm
+    calib = calibration_from_rig(rig, PatternSpec())
+    strict = Scanner(calib, clean_params=CleanParams(max_sigma_mm=0.5))
+    with pytest.raises(GBError, match="column_sigma"):
+        strict.reconstruct(col)
+    kept = strict.reconstruct(col, column_sigma=cs)
+    # unknown (NaN) sigma is dropped, at the pointwise stage (before the spike and jump filters)
+    in_play = np.isfinite(scanner.triangulator(col)[..., 2])
+    assert kept.counts["high_sigma"] == int((in_play & np.isnan(cs)).sum()) > 200
+    assert not kept.valid[240, :320].any() and kept.valid[239, :320].sum() > 200
+    r = sim.render(rig, sim.scenes.plane(650.0), render_pattern(PatternSpec()), "clean", seed=0)
+    off = Scanner(calib, decode_params=DecodeParams(confidence_spread_px=0.0))
+    s = off.scan(r.image)
+    assert s.stripemap.column_sigma is None and s.sigma_mm is None and s.n_points > 0
+    with pytest.raises(GBError, match="confidence_spread_px"):
+        Scanner(calib, decode_params=DecodeParams(confidence_spread_px=0.0),
+                clean_params=CleanParams(max_sigma_mm=0.5)).scan(r.image)
+    assert Scanner(calib, decode_params=DecodeParams(confidence_spread_px=0.0),
+                   clean_params=CleanParams(max_sigma_mm=0.5)).scan(r.image, clean=False).n_points > 0
+    with pytest.raises(GBError, match="max_sigma_mm"):
+        CleanParams(max_sigma_mm=0.0)

@@ -318,3 +318,51 @@ def test_per_pixel_rays_are_the_camera_models(rig, dist):
     np.testing.assert_allclose(mx, ref[:, 0], rtol=0, atol=1e-12)
     np.testing.assert_allclose(my, ref[:, 1], rtol=0, atol=1e-12)
     assert (n_slow > 0) == (dist[0] == -0.6)  # only the extreme lens takes the redo path (per-pixel Newton)
+
+
+# -- a point's predicted error from its column's (point_sigma_mm) -------------------------------------
+def test_point_sigma_is_the_pencils_closed_form_derivative_times_the_column_error(rig, calib):
+    """Along a ray ``p = z m`` the pencil's plane of column x holds ``z = (ad + t bd) / (a.m + t b.m)``
+    (t = x - xc), so ``|dp/dx| = |m| |bd a.m - ad b.m| / (a.m + t b.m)^2``: the central difference
+    agrees to 1e-3 (the float32 points' rounding, ~6e-5 mm at 650 mm, over a 0.5 px step that moves
+    them ~0.4 mm), the one-sided one at the calibrated range's end to 1e-2 (its error is first order
+    in the step), and the error scales with the column's."""
+    from gbscan.triangulate import GridTriangulator, point_sigma_mm
+
+    table = PlaneTable.from_calibration(calib)
+    g = GridTriangulator(rig.camera, table)
+    pen = g.pencil
+    _, col, _ = truth(rig, spheres=[((30.0, -20.0, 600.0), 90.0)], planes=[tilted_plane(700.0)])
+    H, W = col.shape
+    m = np.stack([g.mx, g.my, np.ones_like(g.mx)], axis=1).reshape(H, W, 3)
+    am, bm = m @ pen.a, m @ pen.b
+
+    def closed_form(x):
+        return np.linalg.norm(m, axis=2) * np.abs(pen.bd * am - pen.ad * bm) / (am + (x - pen.xc) * bm) ** 2
+
+    rng = np.random.default_rng(0)
+    sig = np.where(np.isfinite(col), rng.uniform(0.02, 0.5, col.shape), np.nan).astype(np.float32)
+    out = point_sigma_mm(g, col, sig)
+    fin = np.isfinite(col)
+    assert fin.sum() > 50000 and np.array_equal(np.isfinite(out), fin)
+    want = closed_form(col.astype(np.float64)) * sig
+    np.testing.assert_allclose(out[fin], want[fin], rtol=1e-3)
+    assert 0.2 < float(np.median(out[fin] / sig[fin])) < 2.0    # mm per projector px at ~650 mm: sane scale
+    # twice the column error, twice the point's; NaN error -> NaN
+    sig2 = sig.copy()
+    sig2[100, 300] = np.nan
+    out2 = point_sigma_mm(g, col, 2 * sig2)
+    both = fin & np.isfinite(sig2)
+    np.testing.assert_allclose(out2[both], 2 * out[both], rtol=1e-6)
+    assert np.isnan(out2[100, 300])
+    # at the last calibrated plane the step beyond the extrapolation limit has no point: one-sided
+    x_end = np.float32(table.column[-1] + g.max_extra_px - 0.1)
+    near = np.isfinite(col) & (np.abs(col - x_end) < 4)       # pixels that see the pattern's end
+    edge = np.where(near, x_end, np.float32(np.nan)).astype(np.float32)
+    one = point_sigma_mm(g, edge, np.where(near, np.float32(1.0), np.nan).astype(np.float32))
+    assert near.sum() > 100 and np.isnan(g(edge + 0.25)[near, 2]).all()   # the upper step has no point
+    np.testing.assert_allclose(one[near], closed_form(np.float64(x_end))[near], rtol=1e-2)
+    with pytest.raises(GBError, match="column_sigma"):
+        point_sigma_mm(g, col, sig[:, :-1])
+    with pytest.raises(GBError, match="step_px"):
+        point_sigma_mm(g, col, sig, step_px=0)

@@ -1,9 +1,10 @@
 """Decode one camera frame of the green-blue stripe pattern into projector columns (no geometry).
 
 Writes stripes.npz with `column` (continuous projector column, px, NaN where not reported),
-`stripe` (absolute stripe index, -1), `confidence` (0..1), `mask` (reason code; `reasons` lists
-the names), `relative`/`region`/`labels` (the unwrapping), and the pattern, parameters and
-statistics as JSON.  --preview DIR writes one PNG per decoder stage.
+`stripe` (absolute stripe index, -1), `confidence` (0..1), `column_sigma` (the column's predicted
+error, projector px, one standard deviation; absent with confidence_spread_px=0), `mask` (reason
+code; `reasons` lists the names), `relative`/`region`/`labels` (the unwrapping), and the pattern,
+parameters and statistics as JSON.  --preview DIR writes one PNG per decoder stage.
 
 The pattern must be the one projected: take it from the calibration file (--calib) or give
 --stripe-px/--no-markers/--projector as used with 'gbscan pattern'.

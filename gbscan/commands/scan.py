@@ -1,9 +1,11 @@
 """Scan one camera frame: decode the stripes, triangulate, clean, and write the point cloud.
 
 Outputs (each written atomically; a failed run leaves none half-written):
-  -o cloud.ply     binary PLY: x y z nx ny nz (float32, mm, camera frame), confidence, and the
+  -o cloud.ply     binary PLY: x y z nx ny nz (float32, mm, camera frame), confidence, the
                    camera pixel row/col of each point (int32), so 'gbscan mesh --method grid'
-                   can rebuild the organised grid; any PLY viewer reads the points and normals.
+                   can rebuild the organised grid, and sigma_mm (float32: the point's predicted
+                   error along its camera ray, mm, one standard deviation); any PLY viewer reads
+                   the points and normals.
   --xyz xyz.npy    float32 (H, W, 3) organised point map, mm, NaN where no point.
   --mesh mesh.ply  triangle mesh (.ply, .obj or .stl), grid (default) or poisson.
   --preview DIR    PNG pictures: depth map, coverage by reason, shaded mesh from the camera and
@@ -47,6 +49,9 @@ def add_clean_arguments(parser, *, no_clean: bool = True) -> None:
     if no_clean:
         g.add_argument("--no-clean", action="store_true", help="keep every triangulated point")
     g.add_argument("--min-confidence", type=float, help="drop points below this decoder confidence (0..1)")
+    g.add_argument("--max-sigma-mm", type=float, metavar="MM",
+                   help="drop points whose predicted error along the camera ray (one standard deviation, the "
+                        "cloud's sigma_mm) is above MM, e.g. 0.2; unlike --min-confidence the same on every scene")
     g.add_argument("--depth-range", type=float, nargs=2, metavar=("MIN_MM", "MAX_MM"),
                    help="accepted z range, mm; also the working volume the decoder's indexing may assume: a "
                         "region whose few markers fit two offsets is indexed when only one keeps it inside "
@@ -114,7 +119,7 @@ def clean_params_from_args(args, *, none_if_default: bool = False):
         kw["min_confidence"] = args.min_confidence
     if args.depth_range is not None:
         kw["min_depth_mm"], kw["max_depth_mm"] = args.depth_range
-    for name in ("max_jump", "max_angle_deg", "outlier_tol", "min_cluster_px", "max_gap_px"):
+    for name in ("max_jump", "max_angle_deg", "outlier_tol", "min_cluster_px", "max_gap_px", "max_sigma_mm"):
         if getattr(args, name) is not None:
             kw[name] = getattr(args, name)
     if none_if_default and not kw:

@@ -27,6 +27,7 @@ REASON_RGB = {
     "grazing": (60, 200, 220),
     "small_cluster": (240, 110, 200),
     "gap_edge": (250, 150, 60),
+    "high_sigma": (200, 120, 120),
 }
 
 
@@ -147,27 +148,41 @@ def coverage_rgb(reason: np.ndarray) -> np.ndarray:
 
 def save_depth_picture(path, xyz: np.ndarray, title: str = "depth (mm)") -> Path:
     """Colour-coded depth map z (mm) with a colour bar; no-point pixels black."""
+    z = np.asarray(xyz)[..., 2].astype(np.float64)
+    finite = np.isfinite(z)
+    lo, hi = (np.percentile(z[finite], [1, 99]) if finite.any() else (0.0, 1.0))
+    return _save_map_picture(path, z, "turbo", lo, max(hi, lo + 1e-3), f"{title}: {int(finite.sum())} points", "z (mm)")
+
+
+def save_sigma_picture(path, sigma_mm: np.ndarray, title: str = "predicted error along the ray (mm, 1 sigma)") -> Path:
+    """Map of each point's predicted error (:attr:`gbscan.scan.Scan.sigma_mm`, mm) with a colour
+    bar from 0 to its 99th percentile; no-point pixels black."""
+    sig = np.asarray(sigma_mm, np.float64)
+    finite = np.isfinite(sig)
+    med, hi = (np.percentile(sig[finite], [50, 99]) if finite.any() else (0.0, 1.0))
+    return _save_map_picture(path, sig, "magma", 0.0, max(hi, 1e-3), f"{title}: median {med:.3f} mm", "sigma (mm)")
+
+
+def _save_map_picture(path, values: np.ndarray, cmap_name: str, vmin: float, vmax: float, title: str,
+                      label: str) -> Path:
+    """(H, W) values as a colour map with a colour bar, NaN black, written atomically as PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    z = np.asarray(xyz)[..., 2].astype(np.float64)
-    H, W = z.shape
-    finite = np.isfinite(z)
+    H, W = values.shape
     fig, ax = plt.subplots(figsize=(W / 100 + 1.6, H / 100 + 0.6), dpi=100)
     try:
-        cmap = plt.get_cmap("turbo").with_extremes(bad="black")
-        lo, hi = (np.percentile(z[finite], [1, 99]) if finite.any() else (0.0, 1.0))
-        im = ax.imshow(np.ma.masked_invalid(z), cmap=cmap, vmin=lo, vmax=max(hi, lo + 1e-3), interpolation="nearest")
-        ax.set_title(f"{title}: {int(finite.sum())} points")
+        cmap = plt.get_cmap(cmap_name).with_extremes(bad="black")
+        im = ax.imshow(np.ma.masked_invalid(values), cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
+        ax.set_title(title)
         ax.set_axis_off()
-        fig.colorbar(im, ax=ax, fraction=0.04, pad=0.02, label="z (mm)")
+        fig.colorbar(im, ax=ax, fraction=0.04, pad=0.02, label=label)
         _save_figure(fig, path)
     finally:
         plt.close(fig)
     return Path(path)
-
 
 
 def _save_figure(fig, path) -> None:
@@ -202,9 +217,10 @@ def save_coverage_picture(path, reason: np.ndarray) -> Path:
 
 
 def write_scan_previews(scan, outdir, *, camera, mesh=None, yaw_deg: float = 35.0) -> list[Path]:
-    """Write ``depth.png``, ``coverage.png``, ``shaded_camera.png`` and ``shaded_angle.png``, and
+    """Write ``depth.png``, ``coverage.png``, ``shaded_camera.png`` and ``shaded_angle.png``;
     when the scan has a texture ``texture.png`` (the grey texture of the kept points) and
-    ``textured_angle.png`` (the angled render with it).
+    ``textured_angle.png`` (the angled render with it); when it has a predicted error per point
+    ``sigma.png`` (:attr:`gbscan.scan.Scan.sigma_mm`).
 
     scan : :class:`gbscan.scan.Scan`; camera : the calibration's :class:`gbscan.camera.Camera`
     (its K and size frame the renders); mesh : a :class:`gbscan.mesh.Mesh` (default: the scan's
@@ -215,6 +231,9 @@ def write_scan_previews(scan, outdir, *, camera, mesh=None, yaw_deg: float = 35.
              save_coverage_picture(outdir / "coverage.png", scan.reason)]
     if scan.n_points == 0:
         return paths
+    sigma = scan.sigma_mm
+    if sigma is not None:
+        paths.append(save_sigma_picture(outdir / "sigma.png", sigma))
     if mesh is None:
         mesh = scan.mesh_arrays("grid")
     size = camera.size
