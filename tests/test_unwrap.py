@@ -225,6 +225,35 @@ def test_marker_conflicts_reject_a_welded_stretch_and_nothing_else():
     assert uw.marker_conflicts(lab, un, idx, PatternSpec(markers=False)).shape == (0, 3)
 
 
+def test_marker_conflicts_do_not_stop_at_a_coincidental_agreement():
+    """A strip 12 stripes off from stripe 30 on: its first marker (true stripe 49) lands on the
+    region's marker stripe 37 and agrees; around it the strip disagrees (the region's marker 30
+    shows green/blue, the strip's marker 54 sits on the region's 42).  An agreeing marker bounds
+    the rejected stretch only when the next event beyond it agrees too
+    (``UnwrapParams.conflict_confirm``): every wrong pixel goes, from the last marker whose
+    predecessor agrees as well (stripe 26); without the rule the stretch began at the coincidence
+    and 63 wrong pixels stayed.  What it cannot see: a coincidence right after a real
+    agreement (10 stripes off from stripe 17: the strip's 9 px a row before the coincidence stay
+    either way)."""
+    spec = PatternSpec()
+    for shift, jump, kept_with, kept_without in ((12, 30, 0, 63), (10, 17, 27, 27)):
+        lab = welded_image(spec, jump=jump, shift=shift)
+        un = uw.unwrap(lab)
+        idx = uw.index_regions(lab, un.relative, un.region, un.region_px.size, spec)
+        assert un.region_px.size == 1 and idx.indexed[0]
+        truth = np.concatenate([np.arange(jump), np.arange(jump + shift, 45 + shift)]).repeat(3)
+        wrong = (un.relative + idx.offset[0])[60:] != truth[None]
+        for confirm, kept in ((True, kept_with), (False, kept_without)):
+            bad = uw.spans_mask(uw.marker_conflicts(lab, un, idx, spec, uw.UnwrapParams(conflict_confirm=confirm)),
+                                lab.shape)
+            assert not bad[:60].any() and int((wrong & ~bad[60:]).sum()) == kept, (shift, jump, confirm)
+    lab = welded_image(spec, jump=30, shift=12)
+    un = uw.unwrap(lab)
+    idx = uw.index_regions(lab, un.relative, un.region, un.region_px.size, spec)
+    bad = uw.spans_mask(uw.marker_conflicts(lab, un, idx, spec), lab.shape)
+    assert not bad[60:, :26 * 3].any() and bad[60:, 26 * 3:].all()
+
+
 def test_marker_conflicts_ignore_a_single_missed_marker():
     """A marker that a row fails to show (e.g. at a rim) is one disagreement, not a shifted stretch."""
     spec = PatternSpec()
