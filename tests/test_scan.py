@@ -429,6 +429,9 @@ def test_sim_scan_command_end_to_end(tmp_path):
                        capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
     assert "high_sigma" in p.stdout and (tmp_path / "prev" / "sigma.png").stat().st_size > 1000
+    line = next(x for x in p.stdout.splitlines() if x.startswith("predicted error along the ray"))
+    med = float(line.split("median ")[1].split(" mm")[0])
+    assert 0.03 < med <= 0.2, line       # what the strict cloud keeps: all under 0.2 mm
     strict = read_cloud_ply(tmp_path / "strict.ply")
     assert strict.sigma_mm.max() <= 0.2 and 0.3 * len(cloud.points) < len(strict.points) < len(cloud.points)
 

@@ -11,7 +11,8 @@ Outputs (each written atomically; a failed run leaves none half-written):
   --preview DIR    PNG pictures: depth map, coverage by reason, shaded mesh from the camera and
                    from an angle (DIR is created if its parent exists).
 
-The cleaning counts, points, coverage and timings are printed.  --no-clean keeps every
+The cleaning counts, points, coverage, the points' predicted error (median, 90th percentile) and
+timings are printed.  --no-clean keeps every
 triangulated point (for looking at what the filters remove).
 """
 from __future__ import annotations
@@ -178,6 +179,11 @@ def run(args) -> int:
     print(f"{args.image}: {cam.width}x{cam.height}, {calib.n_planes} light planes")
     print("removed: " + ", ".join(f"{k} {c[k]}" for k in steps))
     print(f"points: {scan.n_points} ({100 * scan.coverage:.1f}% of the image)")
+    sig = scan.point_sigma_mm   # (computed for the cloud's sigma_mm anyway)
+    if sig is not None and np.isfinite(sig).any():
+        med, p90 = np.nanpercentile(sig, [50, 90])
+        print(f"predicted error along the ray (1 sigma): median {med:.3f} mm, 90 % of the points under {p90:.3f} mm "
+              "(--max-sigma-mm MM keeps only the points under MM)")
 
     written = []
     scan.save_ply(out)
