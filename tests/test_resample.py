@@ -322,3 +322,26 @@ def test_cli_resample_flag(tmp_path, capsys):
     import json
 
     assert json.loads(str(z["stats"]))["resample"] == 2.0
+
+
+@pytest.mark.parametrize("shape, coarse", [((960, 1280), (480, 640)), ((1024, 1280), (585, 731)), ((9, 12), (5, 7))])
+def test_column_sigma_expands_from_the_coarse_pixel_the_columns_come_from(shape, coarse):
+    """A resampled decode's column_sigma takes, at each full pixel, the coarse pixel whose column the
+    expansion used (the kernels' nearest-pixel rule, ``_coarse_row`` / ``_coarse_columns``), for
+    exact halves and for other factors (1.75: the head's), NaN where the full pixel is not
+    reported."""
+    from gbscan.decode import _expand_sigma
+    from gbscan.kernels.resample import _coarse_columns, _coarse_row
+
+    H, W = shape
+    h, w = coarse
+    rng = np.random.default_rng(3)
+    sigma = rng.uniform(0.04, 0.5, (h, w)).astype(np.float32)
+    reported = rng.random((H, W)) < 0.8
+    full = _expand_sigma(sigma, reported)["column_sigma"]
+    _, _, jidx = _coarse_columns(w, W, 0.2)
+    rows = np.array([_coarse_row(v, h, H, 0.2)[0] for v in range(H)])
+    want = sigma[rows][:, jidx]
+    assert full.dtype == np.float32 and full.shape == (H, W)
+    np.testing.assert_array_equal(full[reported], want[reported])
+    assert np.isnan(full[~reported]).all()
