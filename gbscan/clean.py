@@ -334,9 +334,10 @@ def clean(xyz: np.ndarray, confidence: np.ndarray | None = None, params: CleanPa
         sig = np.asarray(sigma_mm)
         if sig.shape != (H, W):
             raise GBError(f"clean: sigma_mm {sig.shape} does not match xyz {xyz.shape[:2]}")
-        with np.errstate(invalid="ignore"):
-            high = (reason == 0) & ~(sig <= params.max_sigma_mm)
-        reason[high] = CODE["high_sigma"]
+        in_play = reason == 0
+        kept, name = sigma_filter(sig, in_play, params.max_sigma_mm)   # the public filter, on the chain's map
+        high = in_play & ~kept
+        reason[high] = CODE[name]
         counts["high_sigma"] = int(np.count_nonzero(high))
     n_spike, n_jump, n_gap = kernels.clean_spikes_jumps(
         xyz, reason, float(params.outlier_tol), int(params.min_pairs), CODE["outlier"], float(params.max_jump),

@@ -444,12 +444,15 @@ def _expand_maps(*args) -> dict:
 
 
 def _expand_sigma(sigma: np.ndarray, reported: np.ndarray) -> dict:
-    # the coarse pixel nearest to each full pixel (as upsample_stripes picks it), NaN where the
-    # expanded map reports nothing: the first-order expansion carries its coarse pixel's error
+    # the coarse pixel nearest to each full pixel, by the expansion kernels' own rule (their
+    # _coarse_columns, for the rows too: _coarse_row is the same mapping), NaN where the expanded
+    # map reports nothing: the first-order expansion carries its coarse pixel's error
+    from .kernels.resample import _coarse_columns
+
     h, w = sigma.shape
     H, W = reported.shape
-    ys = np.minimum(((np.arange(H) + 0.5) * (h / H)).astype(np.int64), h - 1)
-    xs = np.minimum(((np.arange(W) + 0.5) * (w / W)).astype(np.int64), w - 1)
+    ys = _coarse_columns(h, H, 0.0)[2]
+    xs = _coarse_columns(w, W, 0.0)[2]
     full = np.take(np.take(sigma, ys, axis=0), xs, axis=1)
     full[~reported] = np.nan
     return {"column_sigma": full}
