@@ -209,6 +209,32 @@ class DecodeParams:
         327-647 -> 77-487 (``scripts/sweep_decode.py --blur-grid``).  The cost falls on the frames
         the automatic blur takes above 1.5 px (noisy ones): the hard preset's sweep scenes report
         1-6 points fewer pixels; at the automatic blur no other scene changes.
+    rim_end_dim_ratio : the ``rim_end_rows`` guard keeps an end row over darkness when it is not
+        dim: its phase-blind brightness at least this fraction of the reported pixel
+        ``DIM_REF_ROWS`` rows further in (0: every end row masked, the rule before).  Over
+        darkness the blur carries nothing but the surface's own stripes; the end rows' error
+        (one-sided blur: 0.4-0.55 projector px RMS on the sphere's top and bottom, 0.09 inside)
+        is in ``column_sigma``.  What such rows can get badly wrong is the penumbra of a light
+        field's or shadow's edge, lit by the optics' defocus alone: on the simulated wall above
+        the projected area 0.12-0.19 of the brightness 3 rows in, its columns 0.3-1.1 projector
+        px off, a multi-object point 3.03 mm off with the end rows unguarded.  Darkness
+        (:func:`rim_guard`): walking on from the end row past the pixels not reported ("rim",
+        dropped striped, signal-less ones), two signal-less rows below ``DIM_DARK_RATIO`` of the
+        end row's brightness (or one at the image's edge) within ``DIM_WALK_ROWS`` rows, before
+        any reported pixel.  A reported pixel first is another surface whose stripes the blur
+        may carry, or the same one after a dropout; brightness does not tell them apart safely
+        (a mixed silhouette pixel's lies between both surfaces'), so those rows stay masked, as
+        do rows in frames with ambient light (no darkness: the hard preset gains nothing).
+        Measured (``scripts/coverage_study.py``, seeds 0-2; 0 / 0.7): sphere 91.7-92.1 ->
+        92.1-92.6 % kept, depth RMS 0.093-0.097 -> 0.096-0.102 mm; head 83.5-85.5 -> 84.1-86.0 %;
+        real face 80.2-81.5 -> 80.3-81.5 %; multi-object 82.9-85.2 -> 83.1-85.5 %, worst points
+        unchanged (2.75 / 2.69 / 2.20 mm); Bayer multi-object +0.2 points, worst unchanged.  The
+        48-scene sweep (``scripts/sweep_decode.py``): 83.75 -> 83.91 % reported, wrong pixels off
+        depth edges 13 -> 13, and at every fixed blur 1 ... 3 px as before; on them 147 -> 150
+        (+3 at blurs 1 and 1.25, as before at the others); JPEG q95 4:4:4 29 / 147 -> 29 / 149,
+        q90 4:2:0 138 / 253 -> 138 / 254.  Also keeping a row whose walk meets a reported pixel
+        as bright as itself (within the ratio either way) gave the real face 0.6-0.7 points
+        more, but let 1-3 mixed silhouette pixels of the hard multi-object scene through.
     step_guard_ratio : reported pixels on the dim side of a brightness step inside their region's
         stretch along the stripes, within 3 sigma of the stretch's end, are masked "rim" when the
         bright side is more than this many times brighter (0: never).  See :func:`step_guard`.
@@ -282,6 +308,7 @@ class DecodeParams:
     rim_end_px: int = 2
     rim_guard_px: int | None = None
     rim_end_rows: int | None = None
+    rim_end_dim_ratio: float = 0.7
     rim_guard_no_boundary: bool = True
     step_guard_ratio: float = 1.9
     resample: float = 0.0
@@ -333,6 +360,9 @@ class DecodeParams:
             bad("step_guard_ratio", "must be 0 (off) or a brightness ratio above 1")
         if not (float(self.rim_bias_px) >= 0) or int(self.rim_end_px) < 0:
             bad("rim_bias_px/rim_end_px", "must be >= 0 (0 disables the rule)")
+        dr = self.rim_end_dim_ratio
+        if isinstance(dr, bool) or not isinstance(dr, (int, float)) or not 0 <= dr <= 1:
+            bad("rim_end_dim_ratio", f"must be a brightness ratio in [0, 1] (0: every end row masked), got {dr!r}")
         if not isinstance(self.rim_guard_no_boundary, bool):
             bad("rim_guard_no_boundary", f"must be True or False, got {self.rim_guard_no_boundary!r}")
         cs = self.confidence_spread_px
@@ -1025,7 +1055,8 @@ def _unreported(counts: np.ndarray | None, n: int, code: int) -> None:
 
 
 def rim_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confidence: np.ndarray,
-              rows: int, counts: np.ndarray | None = None, end_rows: int = 0, no_boundary: bool = False) -> int:
+              rows: int, counts: np.ndarray | None = None, end_rows: int = 0, no_boundary: bool = False,
+              image_rgb: np.ndarray | None = None, dim_ratio: float = 0.0, camera_gamma: float = 2.2) -> int:
     """Mask ``RIM`` the reported pixels within ``rows`` rows (along the stripes) of a pixel whose
     reason is ``UNINDEXED`` or ``ISOLATED`` (or ``NO_BOUNDARY`` with ``no_boundary``), and within
     ``end_rows`` rows of a pixel without signal (``DARK``, ``SATURATED``, ``LOW_CONTRAST``) or
@@ -1038,6 +1069,15 @@ def rim_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confiden
     width.  Where both sides are reported, :func:`rim_rule` sees the pull; where the other side is
     a surface the decoder drops (its index uncertain, or too small), the carried stripes decode
     as a clean continuation of the reported surface, 1-2 rows into the dropped one.
+
+    ``dim_ratio`` > 0 with ``image_rgb`` (H, W, 3) uint8 (the decoded frame; ``camera_gamma`` its
+    encoding): a pixel that only a pixel without signal or masked ``RIM`` puts in reach (no
+    unindexed, isolated or no-boundary one) is kept when, on each side where one is, darkness
+    follows before any reported pixel (two signal-less rows below ``DIM_DARK_RATIO`` of its
+    brightness within ``DIM_WALK_ROWS`` rows, past "rim" and dropped ones) and it is not dim: its
+    phase-blind brightness at least ``dim_ratio`` times that of the reported pixel
+    ``DIM_REF_ROWS`` rows further in.  A penumbra, lit by the optics' defocus alone, is dim and
+    its columns are off (see ``DecodeParams.rim_end_dim_ratio``).
     """
     rows, end_rows = int(rows), int(end_rows)
     if rows <= 0 and end_rows <= 0:
@@ -1047,11 +1087,30 @@ def rim_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confiden
     ws = getattr(_THREAD, "workspace", None)  # the fast path's scratch when it has one this size
     near = ws.near if ws is not None and ws.shape == mask.shape else np.empty(mask.shape, np.uint8)
     assert (DARK, SATURATED, LOW_CONTRAST) == (1, 2, 3)  # the kernel's [b_lo, b_hi] range
+    dim = float(dim_ratio) if image_rgb is not None and end_rows > 0 else 0.0
+    if dim > 0:
+        if image_rgb.shape != mask.shape + (3,):
+            raise GBError(f"rim_guard: image_rgb must be {mask.shape + (3,)} to match mask, got {image_rgb.shape}")
+        img, lut = np.ascontiguousarray(image_rgb, dtype=np.uint8), _lut(float(camera_gamma))
+    else:
+        img, lut = np.zeros((0, 0, 3), np.uint8), np.zeros(256, np.float32)
     n = int(kernels.rim_guard_rows(mask, column, stripe, confidence, UNINDEXED, ISOLATED, DARK, LOW_CONTRAST, RIM,
                                    rows if rows > 0 else -1, end_rows if end_rows > 0 else -1, OK, RIM, near,
-                                   NO_BOUNDARY if no_boundary else -1))
+                                   NO_BOUNDARY if no_boundary else -1, img, lut, STEP_BOX_PX, dim, DIM_REF_ROWS,
+                                   DIM_WALK_ROWS, DIM_DARK_RATIO))
     _unreported(counts, n, RIM)
     return n
+
+
+#: rim_guard's dim test compares an end pixel with the pixel this many rows further in (beyond a
+#: light field's penumbra at the paper's geometry: 0.12-0.19 of the brightness there on the
+#: simulated wall at the projected area's top edge)
+DIM_REF_ROWS = 3
+#: ... and looks this many rows past the end for darkness (the sphere's silhouette: two "rim"
+#: rows, two or three dropped grazing rows, then the background)
+DIM_WALK_ROWS = 6
+#: ... where a signal-less pixel is dark below this fraction of the end pixel's brightness
+DIM_DARK_RATIO = 0.5
 
 
 #: step_guard's fixed shape: the phase-blind brightness window (camera px, about one green-blue
@@ -1063,8 +1122,20 @@ STEP_BOX_PX, STEP_HALF_ROWS, STEP_FLAT, STEP_REACH_SIGMAS = 7, 2, 1.3, 3.0
 #: :func:`column_spread`'s model of a column's error (projector px; fitted on the simulated sphere,
 #: head, multi-object scene and plane at 8 px stripes, typical preset: the predicted and the actual
 #: error RMS agree within ~1.5x over the middle of the range, the top 3 % is overestimated ~2x):
-#: roughness window (rows either side) and scale, the edge term at 1 px and its reach (px), floor
+#: roughness window (rows either side) and scale, the edge term at 1 px along the row and its reach
+#: (px), floor
 SPREAD_ROUGH_ROWS, SPREAD_ROUGH_SCALE, SPREAD_EDGE_PX, SPREAD_EDGE_CAP, SPREAD_FLOOR_PX = 2, 1.5, 0.2, 6, 0.04
+#: the edge term at 1 row along the column (within the same reach).  Smaller than along the row:
+#: the roughness, a mean over the second differences the window has, already measures how fast
+#: the column bends toward a stretch's top or bottom end, which the end rows miss by.  Measured
+#: (scratch, seeds 0-1, typical preset; column error RMS over predicted of the reported lit
+#: non-edge pixels one row from an unreported one; the edge term 0.2 both ways with the roughness
+#: diluted by its missing rows before): sphere 1.53 / 1.51 -> 0.89 / 0.88, head 1.43 / 1.58 ->
+#: 0.95 / 0.97, real face 1.43 / 1.40 -> 0.94 / 0.95, multi-object 0.86 / 0.91 -> 0.75 / 0.82,
+#: plane 0.28 / 0.29 -> 0.34 / 0.35; 0 here instead: the multi-object scene's points in the
+#: 90-97 % band of ``sigma_mm`` under-predicted 1.21x (``scripts/coverage_study.py --sigma``:
+#: 1.07x), its horizontal depth edges' pull, which the roughness does not see
+SPREAD_EDGE_ROWS_PX = 0.14
 #: the floor grows with the frame's noise (:func:`spread_floor_px`): SPREAD_FLOOR_PX at this stripe
 #: SNR (the typical preset's plane, 36.6, where it was fitted) and blur sigma 1 px
 SPREAD_SNR_REF = 36.0
@@ -1099,7 +1170,8 @@ def column_spread(mask: np.ndarray, column: np.ndarray, confidence: np.ndarray, 
 
     spread = np.empty(mask.shape if want_spread else (0, 0), np.float32)
     kernels.column_spread(column, mask, confidence, OK, SPREAD_ROUGH_ROWS, SPREAD_ROUGH_SCALE, SPREAD_EDGE_PX,
-                          SPREAD_EDGE_CAP, float(floor_px), float(params.confidence_spread_px), CONF_FLOOR, spread)
+                          SPREAD_EDGE_CAP, float(floor_px), float(params.confidence_spread_px), CONF_FLOOR, spread,
+                          SPREAD_EDGE_ROWS_PX)
     return spread if want_spread else None
 
 
@@ -1574,7 +1646,8 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         reg_margin, cls.contrast, int(pattern.stripe_px), int(pattern.n_stripes), float(params.min_contrast),
         len(REASONS), CONF_FLOOR)
     n_guard = rim_guard(mask, column, stripe, conf, guard_rows(params), counts, guard_end_rows(params),
-                        bool(params.rim_guard_no_boundary))
+                        bool(params.rim_guard_no_boundary), img, float(params.rim_end_dim_ratio),
+                        float(params.camera_gamma))
     n_step = step_guard(img, mask, column, stripe, conf, region, params, counts)
     _unreported(counts, int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED)), ISOLATED)
     sigma = None

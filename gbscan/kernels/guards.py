@@ -11,38 +11,49 @@ from numba import njit
 # -- decoder: rim guard (gbscan.decode.rim_guard) --------------------------------------------------
 @njit(cache=True, nogil=True, error_model="numpy")
 def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows_a, rows_b, ok_code, rim_code,
-                   flags, a3=-1):
+                   flags, a3, img, lut, box, dim_ratio, ref_rows, walk_rows, dark_ratio):
     """Mask ``rim_code`` the ``ok_code`` pixels within ``rows_a`` rows (same column) of a pixel
     whose code is ``a1`` or ``a2`` (or ``a3`` when >= 0), or within ``rows_b`` rows of one whose code is in
     ``[b_lo, b_hi]`` or equals ``b_extra``; sets column NaN, stripe -1, conf 0 there and returns
     their count (a negative row count disables its class).  The codes are read from the mask as
     given (pixels masked here do not extend the guard).  ``flags`` (H, W) uint8 scratch: bit 1
-    class a, bit 2 class b (one pass); then per row the OR of the flags of the rows in reach
-    (byte-wide loops that vectorise) decides, and the few hits are written."""
+    class a, bit 2 class b in ``[b_lo, b_hi]``, bit 4 class b ``b_extra``, bit 8 ``ok_code`` (one
+    pass); then per row the OR of the flags of the rows in reach (byte-wide loops that
+    vectorise) decides, and the few hits are written.
+
+    ``dim_ratio`` > 0 (``img`` (H, W, 3) uint8, ``lut`` (256,) float32 linearisation; else unread):
+    a pixel that only class b pixels put in reach is kept when :func:`_dim_end` finds darkness
+    beyond them (``dark_ratio``, within ``walk_rows`` rows) and the pixel not dim against the one
+    ``ref_rows`` rows the other way (``dim_ratio``; brightness: :func:`_brightness` over ``box``
+    px of the row)."""
     H, W = mask.shape
     ua1, ua2 = np.uint8(a1), np.uint8(a2)
-    ua3 = np.uint8(a3) if a3 >= 0 else ua1   # an optional third code of class a
+    ua3 = np.uint8(a3) if a3 >= 0 else ua1   # an optional third code of class a (-1: none)
     ulo, uhi, uex = np.uint8(b_lo), np.uint8(b_hi), np.uint8(b_extra)
     uok = np.uint8(ok_code)
-    one, two = np.uint8(1), np.uint8(2)
+    one, two, six = np.uint8(1), np.uint8(2), np.uint8(6)
     for v in range(H):
         mrow = mask[v]
         frow = flags[v]
         for u in range(W):
             m = mrow[u]
             fa = np.uint8((m == ua1) | (m == ua2) | (m == ua3))
-            fb = np.uint8(((m >= ulo) & (m <= uhi)) | (m == uex))
-            frow[u] = fa | (fb << one)
+            fb = np.uint8((m >= ulo) & (m <= uhi))
+            fx = np.uint8(m == uex)
+            fo = np.uint8(m == uok)
+            frow[u] = fa | (fb << one) | (fx << two) | (fo << np.uint8(3))   # bits 1, 2, 4, 8
     reach = max(rows_a, rows_b, 0)
     acc = np.empty(W, np.uint8)
     hitrow = np.empty(W, np.uint8)
+    dim_test = dim_ratio > 0.0
+    box_h = box // 2
     n = 0
     # every decision reads ``flags`` (made from the mask as given), never the rows written here
     for v in range(H):
         acc[:] = 0
         for vv in range(max(v - reach, 0), min(v + reach, H - 1) + 1):
             d = abs(vv - v)
-            bits = np.uint8((one if d <= rows_a else 0) | (two if d <= rows_b else 0))
+            bits = np.uint8((one if d <= rows_a else 0) | (six if d <= rows_b else 0))
             if bits == 0:
                 continue
             frow = flags[vv]
@@ -54,9 +65,61 @@ def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows
             h = np.uint8((acc[u] != 0) & (mrow[u] == uok))
             hitrow[u] = h
             any_hit |= h
+        if any_hit and dim_test:
+            for u in range(W):
+                if hitrow[u] and (acc[u] & one) == 0 and not _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio,
+                                                                       ref_rows, walk_rows, dark_ratio):
+                    hitrow[u] = 0
         if any_hit:
             n += _unreport_row(hitrow, mrow, column[v], stripe[v], conf[v], rim_code)
     return n
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio, ref_rows, walk_rows, dark_ratio):
+    # rim_guard_rows' end-row test of pixel (v, u), True: mask it.  B: the phase-blind brightness.
+    # On each side s with a class b pixel (flags bits 2 or 4) within rows_b rows, walking on from
+    # (v, u) that way past the pixels that are not reported (bit 8; RIM-coded, dropped striped,
+    # signal-less), darkness must come within walk_rows rows, before any reported pixel: two
+    # signal-less pixels (bit 2) in a row below dark_ratio B(v, u), or one at the image's edge
+    # (nothing there for the blur to carry; a reported pixel first is another surface, or the
+    # same after a dropout, which this test cannot tell apart).  And B(v, u) must be at least
+    # dim_ratio B at the pixel ref_rows rows the other way (v - s ref_rows), which must be
+    # reported (else masked: no surface to compare with): not a penumbra.
+    H = flags.shape[0]
+    b = _brightness(img, lut, v, u, box_h)
+    dark_b = np.float32(dark_ratio) * b
+    for s in (-1, 1):
+        near = False
+        for k in range(1, rows_b + 1):
+            w = v + s * k
+            if 0 <= w < H and (flags[w, u] & 6) != 0:
+                near = True
+                break
+        if not near:
+            continue
+        dark = False
+        for k in range(1, walk_rows + 1):
+            w = v + s * k
+            if w < 0 or w >= H:
+                dark = True
+                break
+            f = flags[w, u]
+            if (f & 8) != 0:
+                break
+            if (f & 2) != 0 and _brightness(img, lut, w, u, box_h) < dark_b:
+                w2 = w + s
+                if w2 < 0 or w2 >= H or ((flags[w2, u] & 2) != 0 and _brightness(img, lut, w2, u, box_h) < dark_b):
+                    dark = True
+                    break
+        if not dark:
+            return True
+        r = v - s * ref_rows
+        if r < 0 or r >= H or (flags[r, u] & 8) == 0:
+            return True
+        if b < dim_ratio * _brightness(img, lut, r, u, box_h):
+            return True
+    return False
 
 
 @njit(cache=True, nogil=True)
@@ -376,6 +439,16 @@ def _second_diff_row(ca, cb, cc, out):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _defined_row(ca, cb, cc, out):
+    # 1 where _second_diff_row's difference is defined (the three columns finite), else 0
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    for u in range(out.size):
+        d = ca[u] + cb[u] + cc[u]
+        out[u] = one if d == d else zero
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _flag_row(m, ok_code, out):
     # 1 where the pixel is not reported, else 0
     zero = np.float32(0.0)
@@ -412,12 +485,6 @@ def _run_step(run, flags, capf, big):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _min_into(out, a):
-    for u in range(out.size):
-        out[u] = min(out[u], a[u])
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
 def _store_run(run, out):
     # a row of rows-since-the-last-flag (float32, inf beyond the reach) as uint8 (255: beyond)
     for u in range(out.size):
@@ -435,17 +502,25 @@ def _min_stored(out, a):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _min_into(out, a):
+    for u in range(out.size):
+        out[u] = min(out[u], a[u])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _add_into(out, a, sign):
     for u in range(out.size):
         out[u] += sign * a[u]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _spread2_row(s, dist, rs, floor2, edge2, out):
-    # squared spread of one row: floor^2 + (rs * window sum of second differences)^2 + edge^2 / distance
+def _spread2_row(s, sn, dist, dist_v, rs, floor2, edge2, edge_v2, out):
+    # squared spread of one row: floor^2 + (rs * mean of the defined second differences)^2
+    # + edge^2 / distance along the row + edge_v^2 / distance along the column
+    one = np.float32(1.0)
     for u in range(out.size):
-        r = rs * s[u]
-        out[u] = floor2 + r * r + edge2 / dist[u]
+        r = rs * s[u] / max(sn[u], one)
+        out[u] = floor2 + r * r + edge2 / dist[u] + edge_v2 / dist_v[u]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -471,7 +546,7 @@ def _spread_out(sp2, flags, out):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px, edge_cap, floor_px, sigma0,
-                  conf_floor, spread):
+                  conf_floor, spread, edge_rows_px):
     """Predicted error (projector px) of every reported pixel's column (``mask == ok_code``), and the
     pixel's confidence ``conf`` (H, W) float32 scaled by it in place:
     ``conf_floor + (conf - conf_floor) / (1 + (s / sigma0)^2)`` (``sigma0 <= 0``: untouched).
@@ -479,20 +554,21 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
     size 0.  The prediction rests on what the column map itself shows:
 
     * the local roughness along the stripes: ``rough_scale`` times the mean of
-      ``|c(v-1) - 2 c(v) + c(v+1)|`` over the ``2 rough_rows + 1`` rows ``v - rough_rows ..
-      v + rough_rows`` of the pixel's camera column, an undefined one (a pixel of the three not
-      reported) counted 0 (a surface's column is smooth along the stripes; the boundaries' noise
-      is not);
-    * the distance ``d`` (px, along the row or the column) to the nearest unreported pixel:
-      ``edge_px / sqrt(d)`` for ``d <= edge_cap``, 0 beyond (the boundaries next to the edge of
-      what was decoded rest on fewer, dimmer, more compressed samples and are extrapolated).
+      ``|c(v-1) - 2 c(v) + c(v+1)|`` over the rows ``v - rough_rows .. v + rough_rows`` of the
+      pixel's camera column where it is defined (the three pixels reported; none: 0).  A
+      surface's column is smooth along the stripes; the boundaries' noise is not.  Near the top
+      or bottom end of a surface's stretch the mean over the rows left measures how fast the
+      column bends there, which the end rows miss by (the along-stripe blur is one-sided there);
+    * the distance to the nearest unreported pixel within ``edge_cap`` px, ``d`` along the row
+      and ``e`` along the column: ``edge_px / sqrt(d)`` and ``edge_rows_px / sqrt(e)`` (0 beyond
+      the reach): the boundaries next to the edge of what was decoded rest on fewer, dimmer,
+      more compressed samples, are extrapolated, and may be pulled across a depth edge.
 
-    ``s = sqrt(floor_px^2 + roughness^2 + edge^2)`` (``floor_px``: the locator's noise on a smooth
-    surface far from any edge, which neither term sees).  Where second differences are missing
-    from the window, an unreported pixel is within ``rough_rows + 1`` rows (or the image border
-    is), and the edge term stands for them.  The image border counts as reported.  ``column``
-    must be NaN exactly where the pixel is not reported (as the decoder makes it).  Two passes
-    over the rows, float32, in row loops that vectorise."""
+    ``s = sqrt(floor_px^2 + roughness^2 + edge_px^2 / d + edge_rows_px^2 / e)`` (``floor_px``:
+    the locator's noise on a smooth surface far from any edge, which no other term sees).  The
+    image border counts as reported.  ``column`` must be NaN exactly where the pixel is not
+    reported (as the decoder makes it).  Two passes over the rows (up, then down), float32, in
+    row loops that vectorise."""
     H, W = mask.shape
     cap = min(edge_cap, 254)
     big = np.float32(np.inf)                 # beyond the edge term's reach
@@ -506,17 +582,22 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
         _flag_row(mask[v], ok_code, badr)
         _run_step(run, badr, capf, big)
         _store_run(run, above[v])
-    # downwards, with the roughness's window sums (a ring of second-difference rows) and the result
+    # downwards, with the roughness's window sums (rings of second-difference rows and of their
+    # defined flags) and the result
     nr = 2 * h + 2
     d2 = np.zeros((nr, W), np.float32)
+    n2 = np.zeros((nr, W), np.float32)
     s = np.zeros(W, np.float32)
+    sn = np.zeros(W, np.float32)
     sp2 = np.empty(W, np.float32)
     q = np.empty(W, np.float32)
     dr = np.empty(W, np.float32)             # the row's distance to the nearest unreported pixel
+    dv = np.empty(W, np.float32)             # ... along the column
     run[:] = big
     floor2 = np.float32(floor_px * floor_px)
     edge2 = np.float32(edge_px * edge_px)
-    rs = np.float32(rough_scale / (2 * h + 1))   # of the window's sum
+    edge_v2 = np.float32(edge_rows_px * edge_rows_px)
+    rs = np.float32(rough_scale)
     inv_s02 = np.float32(1.0 / (sigma0 * sigma0)) if sigma0 > 0 else np.float32(0.0)
     cfl = np.float32(conf_floor)
     has_out = spread.size > 0
@@ -531,19 +612,24 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
             k = w % nr
             if 1 <= w <= H - 2:
                 _second_diff_row(column[w - 1], column[w], column[w + 1], d2[k])
+                _defined_row(column[w - 1], column[w], column[w + 1], n2[k])
             else:
                 d2[k, :] = 0
+                n2[k, :] = 0
             _add_into(s, d2[k], plus)
+            _add_into(sn, n2[k], plus)
             added = w
         if v + h + 1 <= H - 1:
             k = (v + h + 1) % nr
             _add_into(s, d2[k], minus)
+            _add_into(sn, n2[k], minus)
         _flag_row(mask[v], ok_code, badr)
         _row_dist(bad, cap, big, dr)         # along the row
-        _min_stored(dr, above[v])            # above
+        dv[:] = big
+        _min_stored(dv, above[v])            # above
         _run_step(run, badr, capf, big)      # below
-        _min_into(dr, run)
-        _spread2_row(s, dr, rs, floor2, edge2, sp2)
+        _min_into(dv, run)
+        _spread2_row(s, sn, dr, dv, rs, floor2, edge2, edge_v2, sp2)
         if sigma0 > 0:
             _conf_row(conf[v], sp2, badr, inv_s02, cfl, q)
         if has_out:
