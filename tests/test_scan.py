@@ -468,8 +468,19 @@ def test_decoder_and_cleaning_flags_are_one_set_across_commands():
     p = _Parser()
     batch_cmd.add_arguments(p)
     assert scan_cmd.clean_params_from_args(p.parse_args(heads[batch_cmd]), none_if_default=True) is None
-    with pytest.raises(GBError, match="--decode-param"):
+    with pytest.raises(GBError, match="--decode-param.*unwrap.NAME"):
         decode_cmd.decode_params_from_args(p.parse_args(heads[batch_cmd] + ["--decode-param", "unwrap=1"]))
+    # the nested unwrapping parameters, field by field (the rest at their defaults)
+    from gbscan.unwrap import UnwrapParams
+
+    got = decode_cmd.decode_params_from_args(p.parse_args(
+        heads[batch_cmd] + ["--decode-param", "unwrap.link_rows=3", "--decode-param", "unwrap.conflict_confirm=off",
+                            "--decode-param", "rim_end_dim_ratio=0"]))
+    assert got == DecodeParams(unwrap=UnwrapParams(link_rows=3, conflict_confirm=False), rim_end_dim_ratio=0.0)
+    for bad, match in (("unwrap.bogus=1", "--decode-param unwrap. 'bogus=1'.*link_rows"),
+                       ("unwrap.link_rows=x", "not a valid value for link_rows"), ("bogus.x=1", "bogus.x=1")):
+        with pytest.raises(GBError, match=match):
+            decode_cmd.decode_params_from_args(p.parse_args(heads[batch_cmd] + ["--decode-param", bad]))
     # the blur: a sigma or "auto" (the default, None), also through --decode-param as a float
     for extra, sigma in ((["--blur-px", "auto", "--gamma", "1.0"], None), (["--blur-px", "1.5"], 1.5),
                          (["--decode-param", "blur_sigma_along_px=1.25"], 1.25),

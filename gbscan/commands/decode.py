@@ -152,7 +152,8 @@ def pairs_to_kwargs(cls, pairs: list[str], option: str) -> dict:
     """``NAME=VALUE`` strings -> {field: value} for dataclass ``cls``; GBError naming ``option``.
 
     Values are converted like the field's default (bool, int, float, str); ``none`` gives None.
-    Fields that are dataclasses themselves (``DecodeParams.unwrap``) cannot be set this way.
+    A field that is a dataclass itself (``DecodeParams.unwrap``) is set field by field as
+    ``FIELD.NAME=VALUE`` (``unwrap.link_rows=3``), the rest of it at its defaults.
     """
     import dataclasses
 
@@ -160,13 +161,21 @@ def pairs_to_kwargs(cls, pairs: list[str], option: str) -> dict:
 
     defaults = cls()
     optional_float = {f.name for f in dataclasses.fields(cls) if "float" in str(f.type)}
-    settable = [f.name for f in dataclasses.fields(cls) if not dataclasses.is_dataclass(getattr(defaults, f.name))]
+    nested = {f.name: type(getattr(defaults, f.name)) for f in dataclasses.fields(cls)
+              if dataclasses.is_dataclass(getattr(defaults, f.name))}
+    settable = [f.name for f in dataclasses.fields(cls) if f.name not in nested]
     kw = {}
+    inner_pairs: dict[str, list[str]] = {}
     for item in pairs:
         name, sep, value = item.partition("=")
+        head, dot, rest = name.strip().replace("-", "_").partition(".")
+        if sep and dot and head in nested:
+            inner_pairs.setdefault(head, []).append(f"{rest}={value}")
+            continue
         name, value = name.strip().replace("-", "_"), value.strip()
         if not sep or name not in settable:
-            raise GBError(f"{option} {item!r}: expected NAME=VALUE with NAME one of {', '.join(settable)}")
+            names = settable + [f"{n}.NAME" for n in nested]
+            raise GBError(f"{option} {item!r}: expected NAME=VALUE with NAME one of {', '.join(names)}")
         current = getattr(defaults, name)
         try:
             if value.lower() in ("none", "null"):
@@ -191,6 +200,9 @@ def pairs_to_kwargs(cls, pairs: list[str], option: str) -> dict:
         except ValueError:
             raise GBError(f"{option} {item!r}: {value!r} is not a valid value for {name} "
                           f"(default {current!r})") from None
+    for name, items in inner_pairs.items():
+        inner = nested[name]
+        kw[name] = build_params(inner, pairs_to_kwargs(inner, items, f"{option} {name}."), f"{option} {name}.*")
     return kw
 
 
