@@ -208,7 +208,8 @@ class DecodeParams:
         5 / 15 / 16 / 17 / 34 / 14 / 18 -> 24 / 5 / 1 / 11 / 12 / 13 / 24 / 8 / 9 and on them
         327-647 -> 77-487 (``scripts/sweep_decode.py --blur-grid``).  The cost falls on the frames
         the automatic blur takes above 1.5 px (noisy ones): the hard preset's sweep scenes report
-        1-6 points fewer pixels; at the automatic blur no other scene changes.
+        1-6 points fewer pixels; at the automatic blur no other scene changes.  An end row over
+        darkness is kept unless it is dim: ``rim_end_dim_ratio``.
     rim_end_dim_ratio : the ``rim_end_rows`` guard keeps an end row over darkness when it is not
         dim: its phase-blind brightness at least this fraction of the reported pixel
         ``DIM_REF_ROWS`` rows further in (0: every end row masked, the rule before).  Over
