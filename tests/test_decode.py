@@ -519,7 +519,8 @@ def _end_row_case(codes, bright, dim_ratio=0.7):
 def test_end_row_guard_keeps_rows_over_darkness_and_masks_a_penumbra():
     """DecodeParams.rim_end_dim_ratio: the end-row guard keeps the row next to darkness (two
     signal-less rows below half its brightness, or one at the image's edge) when it is at least
-    dim_ratio as bright as the reported pixel 3 rows in; it masks a dim row (the penumbra of a
+    dim_ratio as bright as the reported pixel 3 rows in, and the rows beside a single signal-less
+    pixel as bright as they are (a stripe transition); it masks a dim row (the penumbra of a
     light field's edge), a row whose signal-less side is a dark sliver or is followed by a
     reported surface (carried stripes possible), past "rim" and dropped rows alike, a row whose
     reference is not reported, and every end row with dim_ratio 0 (the rule before)."""
@@ -540,12 +541,17 @@ def test_end_row_guard_keeps_rows_over_darkness_and_masks_a_penumbra():
     assert _end_row_case([OK, OK, OK, OK, R, I, D, D], [lit] * 6 + [black] * 2) == []
     # a reported surface before any darkness: masked (another surface's stripes may be carried)
     assert _end_row_case([OK, OK, R, I, R, OK, OK, OK, OK], [lit] * 9) == [1, 5]
-    # signal-less but not dark (an albedo or classification dropout), then the surface again: masked
-    assert _end_row_case([OK, OK, OK, D, OK, OK, OK], [lit] * 7) == [2, 4]
+    # one signal-less pixel as bright as the reported ones on either side: a stripe transition the
+    # classifier called dark, inside the surface: kept
+    assert _end_row_case([OK, OK, OK, D, OK, OK, OK], [lit] * 7) == []
+    # ... but not two such rows, nor one between surfaces of other brightness (1.49x): masked
+    assert _end_row_case([OK, OK, OK, D, D, OK, OK, OK], [lit] * 8) == [2, 5]
+    assert _end_row_case([OK, OK, OK, D, OK, OK, OK], [lit] * 4 + [240] * 3) == [2, 4]
     # a one-row dark sliver between two surfaces: masked
     assert _end_row_case([OK, OK, OK, D, OK, OK, OK], [lit] * 3 + [black] + [lit] * 3) == [2, 4]
-    # the reference (3 rows in) not reported: masked
-    assert _end_row_case([D, D, OK, OK, OK, L, OK, OK], [black] * 2 + [lit] * 6) == [2, 4, 6]
+    # the reference (3 rows in) not reported: masked (rows 4 and 6 beside the bright transition kept)
+    assert _end_row_case([D, D, OK, OK, OK, L, OK, OK], [black] * 2 + [lit] * 6) == [2]
+    assert _end_row_case([D, D, OK, OK, OK, L, OK, OK], [black] * 2 + [lit] * 3 + [black] + [lit] * 2) == [2, 4, 6]
     # the image must match the mask
     m = np.zeros((4, 3), np.uint8)
     m[0] = DARK
@@ -563,10 +569,10 @@ def test_end_rows_over_darkness_are_kept_and_the_penumbra_is_not():
     dim test (``rim_end_dim_ratio``), ~0.45 % more of its lit non-edge pixels (measured +198-224
     pixels of 46 313, seeds 0-3), none on a wrong stripe, their column error RMS under 0.7
     projector px (one-sided blur at the end rows: 0.42-0.54 measured, against 0.09 inside;
-    ``column_sigma`` predicts it within 1.5x: 0.90-1.18x); a plane at 900 mm, past the projector's image at the top and the
-    bottom, has no pixel reported more than 2.5 projector rows outside the image (the penumbra
-    the optics' defocus lights, its columns up to 1 px off: 4.2 rows with the end rows
-    unguarded)."""
+    ``column_sigma`` predicts it within 1.5x: 0.90-1.18x); a plane at 900 mm, past the
+    projector's image at the top and the bottom, has no pixel reported more than 2.5 projector
+    rows outside the image (the penumbra the optics' defocus lights, its columns up to 1 px off:
+    4.2 rows with the end rows unguarded)."""
     r = render("sphere")
     T = r.proj_xy[..., 0]
     good = r.lit & ~r.depth_edge

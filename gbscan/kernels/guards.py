@@ -11,7 +11,7 @@ from numba import njit
 # -- decoder: rim guard (gbscan.decode.rim_guard) --------------------------------------------------
 @njit(cache=True, nogil=True, error_model="numpy")
 def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows_a, rows_b, ok_code, rim_code,
-                   flags, a3, img, lut, box, dim_ratio, ref_rows, walk_rows, dark_ratio):
+                   flags, a3, img, lut, box, dim_ratio, ref_rows, walk_rows, dark_ratio, same_ratio):
     """Mask ``rim_code`` the ``ok_code`` pixels within ``rows_a`` rows (same column) of a pixel
     whose code is ``a1`` or ``a2`` (or ``a3`` when >= 0), or within ``rows_b`` rows of one whose code is in
     ``[b_lo, b_hi]`` or equals ``b_extra``; sets column NaN, stripe -1, conf 0 there and returns
@@ -23,7 +23,8 @@ def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows
 
     ``dim_ratio`` > 0 (``img`` (H, W, 3) uint8, ``lut`` (256,) float32 linearisation; else unread):
     a pixel that only class b pixels put in reach is kept when :func:`_dim_end` finds darkness
-    beyond them (``dark_ratio``, within ``walk_rows`` rows) and the pixel not dim against the one
+    beyond them (``dark_ratio``, within ``walk_rows`` rows; or one signal-less pixel as bright as
+    it, ``same_ratio``, then a reported one) and the pixel not dim against the one
     ``ref_rows`` rows the other way (``dim_ratio``; brightness: :func:`_brightness` over ``box``
     px of the row)."""
     H, W = mask.shape
@@ -68,7 +69,8 @@ def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows
         if any_hit and dim_test:
             for u in range(W):
                 if hitrow[u] and (acc[u] & one) == 0 and not _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio,
-                                                                       ref_rows, walk_rows, dark_ratio):
+                                                                       ref_rows, walk_rows, dark_ratio,
+                                                                       same_ratio):
                     hitrow[u] = 0
         if any_hit:
             n += _unreport_row(hitrow, mrow, column[v], stripe[v], conf[v], rim_code)
@@ -76,7 +78,13 @@ def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio, ref_rows, walk_rows, dark_ratio):
+def _as_bright(x, b, ratio):
+    # x and b within ``ratio`` (< 1) of each other, either way
+    return ratio * b <= x and ratio * x <= b
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio, ref_rows, walk_rows, dark_ratio, same_ratio):
     # rim_guard_rows' end-row test of pixel (v, u), True: mask it.  B: the phase-blind brightness.
     # On each side s with a class b pixel (flags bits 2 or 4) within rows_b rows, walking on from
     # (v, u) that way past the pixels that are not reported (bit 8; RIM-coded, dropped striped,
@@ -85,7 +93,10 @@ def _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio, ref_rows, walk_row
     # (nothing there for the blur to carry; a reported pixel first is another surface, or the
     # same after a dropout, which this test cannot tell apart).  And B(v, u) must be at least
     # dim_ratio B at the pixel ref_rows rows the other way (v - s ref_rows), which must be
-    # reported (else masked: no surface to compare with): not a penumbra.
+    # reported (else masked: no surface to compare with): not a penumbra.  A side whose next
+    # pixel is signal-less (not "rim") and the one after reported, both within same_ratio of
+    # B(v, u) either way, is clear: a stripe transition the classifier found neither green nor
+    # blue enough, inside the surface (the real face's green-blue boundary pixels).
     H = flags.shape[0]
     b = _brightness(img, lut, v, u, box_h)
     dark_b = np.float32(dark_ratio) * b
@@ -99,6 +110,11 @@ def _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio, ref_rows, walk_row
         if not near:
             continue
         dark = False
+        w1, w2 = v + s, v + 2 * s
+        if (0 <= w2 < H and (flags[w1, u] & 6) == 2 and (flags[w2, u] & 8) != 0
+                and _as_bright(_brightness(img, lut, w1, u, box_h), b, same_ratio)
+                and _as_bright(_brightness(img, lut, w2, u, box_h), b, same_ratio)):
+            continue   # one signal-less pixel as bright as its neighbours: a stripe transition
         for k in range(1, walk_rows + 1):
             w = v + s * k
             if w < 0 or w >= H:
