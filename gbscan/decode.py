@@ -1093,9 +1093,10 @@ def rim_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confiden
     assert (DARK, SATURATED, LOW_CONTRAST) == (1, 2, 3)  # the kernel's [b_lo, b_hi] range
     dim = float(dim_ratio) if image_rgb is not None and end_rows > 0 else 0.0
     if dim > 0:
-        if image_rgb.shape != mask.shape + (3,):
-            raise GBError(f"rim_guard: image_rgb must be {mask.shape + (3,)} to match mask, got {image_rgb.shape}")
-        img, lut = np.ascontiguousarray(image_rgb, dtype=np.uint8), _lut(float(camera_gamma))
+        if image_rgb.shape != mask.shape + (3,) or image_rgb.dtype != np.uint8:
+            raise GBError(f"rim_guard: image_rgb must be uint8 {mask.shape + (3,)} to match mask (the decoded "
+                          f"frame), got {image_rgb.dtype} {image_rgb.shape}")
+        img, lut = np.ascontiguousarray(image_rgb), _lut(float(camera_gamma))
     else:
         img, lut = np.zeros((0, 0, 3), np.uint8), np.zeros(256, np.float32)
     n = int(kernels.rim_guard_rows(mask, column, stripe, confidence, UNINDEXED, ISOLATED, DARK, LOW_CONTRAST, RIM,

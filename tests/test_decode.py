@@ -555,9 +555,10 @@ def test_end_row_guard_keeps_rows_over_darkness_and_masks_a_penumbra():
     # the image must match the mask
     m = np.zeros((4, 3), np.uint8)
     m[0] = DARK
-    with pytest.raises(GBError, match="image_rgb"):
-        rim_guard(m, np.zeros((4, 3), np.float32), np.zeros((4, 3), np.int32), np.ones((4, 3), np.float32), 0,
-                  None, end_rows=1, image_rgb=np.zeros((4, 4, 3), np.uint8), dim_ratio=0.7)
+    for bad_img in (np.zeros((4, 4, 3), np.uint8), np.zeros((4, 3, 3), np.uint16)):
+        with pytest.raises(GBError, match="image_rgb"):
+            rim_guard(m, np.zeros((4, 3), np.float32), np.zeros((4, 3), np.int32), np.ones((4, 3), np.float32), 0,
+                      None, end_rows=1, image_rgb=bad_img, dim_ratio=0.7)
     for bad in (-0.1, 1.5, True, "0.7"):
         with pytest.raises(GBError, match="rim_end_dim_ratio"):
             DecodeParams(rim_end_dim_ratio=bad)
