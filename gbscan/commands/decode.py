@@ -168,11 +168,11 @@ def pairs_to_kwargs(cls, pairs: list[str], option: str) -> dict:
     inner_pairs: dict[str, list[str]] = {}
     for item in pairs:
         name, sep, value = item.partition("=")
-        head, dot, rest = name.strip().replace("-", "_").partition(".")
+        name, value = name.strip().replace("-", "_"), value.strip()
+        head, dot, rest = name.partition(".")
         if sep and dot and head in nested:
             inner_pairs.setdefault(head, []).append(f"{rest}={value}")
             continue
-        name, value = name.strip().replace("-", "_"), value.strip()
         if not sep or name not in settable:
             names = settable + [f"{n}.NAME" for n in nested]
             raise GBError(f"{option} {item!r}: expected NAME=VALUE with NAME one of {', '.join(names)}")
