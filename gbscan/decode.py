@@ -195,6 +195,33 @@ class DecodeParams:
         points, 0.192-0.200 -> 0.181-0.192 mm, worst 2.22 -> 1.93 mm (seed 0); Bayer
         multi-object (seeds 1-2) worst 190 / 4.8 -> 2.99 / 3.05 mm: the wall's stripes carried a
         row down onto a box's top, which the decoder leaves without boundaries.
+    join_transitions : report the one-pixel stripe transitions the classifier called dark
+        (:func:`gbscan.kernels.join_transitions`): a pixel on a green|blue boundary has about half
+        of each colour, and after the local normalisation both can fall under ``min_level`` (most
+        of the real face's "dark" pixels: both near 0.33).  The unwrapping already counted such a
+        pixel as the transition between its neighbours (its label stays NONE); it is reported when
+        both neighbours are reported so far, in one indexed region, after the rim rules, with
+        ``gn + bn >= min_level`` and ``min_contrast``.  Relabelling those pixels green or blue in
+        the classifier instead (``gn + bn < min_level`` as the dark test) gave the faces about 2
+        points but welded a 517-pixel region across a fold beside the real face's nose (turned
+        -15 degrees: 3.4 stripes hidden between two camera pixels; the sweep's wrong pixels off
+        depth edges 13 -> 529): the dark fold pixels are what parts the two surfaces, so they stay
+        dark for the unwrapping.  Measured (``scripts/coverage_study.py``, seeds 0-2; off / on):
+        head 84.3-86.3 -> 85.1-87.1 % kept, real face 80.5-81.8 -> 81.6-82.8 %, sphere 92.1-92.6 ->
+        92.2-92.7 %, depth RMS +0.000-0.001 mm, worst points and the multi-object scene unchanged
+        (2.75 / 2.69 / 2.20 mm); the hard preset, whose noise puts many transitions under
+        ``min_level``: sphere 40.5-41.5 -> 48.4-50.6 %, head 4.5-10.3 -> 7.1-12.1 % (its worst point
+        on seed 1 1.09 -> 2.61 mm), multi-object 5.2-7.3 -> 6.1-8.6 %; Bayer: head 74.3-74.8 ->
+        75.9-76.4 %, sphere and multi-object +0.4-0.7, worst points unchanged.  The 48-scene sweep
+        (``scripts/sweep_decode.py``): 83.95 -> 84.47 % reported, wrong pixels off depth edges 13 ->
+        13 (at every fixed blur 1 ... 3 px as before), on them 150 -> 159; JPEG q90 4:2:0 off them
+        140 -> 146, six more pixels of a region already 8 stripes off.  The joined pixels stay
+        edges for the column error model around them (``column_spread``'s sources: the columns
+        beside such a pixel are as poor as beside a dropped one); counted as reported there, the
+        real face's lowest band of ``sigma_mm`` read 1.92-1.99x the prediction (seeds 0-2; now
+        1.84-1.87x, seeds 0-1; without the join 1.81-1.86x; ``scripts/coverage_study.py --sigma``).
+        Joined before the rim rules (read as ordinary pixels by the row-end rule too): 84.48 %,
+        on depth edges 175 (mixed pixels at silhouettes stopped masking their stretch's end).
     rim_end_rows : reported pixels at most this many rows above or below a pixel without signal
         (dark, saturated, low contrast) or masked "rim" are masked "rim" (0: never; None, the
         default: the blur's sigma rounded, at least 1, as ``rim_guard_px`` -- :func:`guard_end_rows`):
@@ -314,6 +341,7 @@ class DecodeParams:
     rim_end_rows: int | None = None
     rim_end_dim_ratio: float = 0.7
     rim_guard_no_boundary: bool = True
+    join_transitions: bool = True
     step_guard_ratio: float = 1.9
     resample: float = 0.0
     confidence_spread_px: float = 0.15
@@ -367,8 +395,9 @@ class DecodeParams:
         dr = self.rim_end_dim_ratio
         if isinstance(dr, bool) or not isinstance(dr, (int, float)) or not 0 <= dr <= 1:
             bad("rim_end_dim_ratio", f"must be a brightness ratio in [0, 1] (0: every end row masked), got {dr!r}")
-        if not isinstance(self.rim_guard_no_boundary, bool):
-            bad("rim_guard_no_boundary", f"must be True or False, got {self.rim_guard_no_boundary!r}")
+        for name in ("rim_guard_no_boundary", "join_transitions"):
+            if not isinstance(getattr(self, name), bool):
+                bad(name, f"must be True or False, got {getattr(self, name)!r}")
         cs = self.confidence_spread_px
         if isinstance(cs, bool) or not isinstance(cs, (int, float)) or not 0 <= cs < math.inf:
             bad("confidence_spread_px", f"must be a column error in projector px >= 0 (0: off), got {cs!r}")
@@ -1169,19 +1198,26 @@ def spread_floor_px(snr: float, blur_sigma_px: float) -> float:
 CONF_FLOOR = 0.25
 
 
+_NO_SOURCES = np.zeros(0, np.int64)
+
+
 def column_spread(mask: np.ndarray, column: np.ndarray, confidence: np.ndarray, params: DecodeParams,
-                  want_spread: bool = True, floor_px: float = SPREAD_FLOOR_PX) -> np.ndarray | None:
+                  want_spread: bool = True, floor_px: float = SPREAD_FLOOR_PX,
+                  sources: np.ndarray | None = None) -> np.ndarray | None:
     """Predicted column error (H, W) float32 projector px of the reported pixels (NaN elsewhere;
     None unless ``want_spread``), and their ``confidence`` scaled by it in place
     (``DecodeParams.confidence_spread_px``; see :func:`gbscan.kernels.column_spread` for the
     model; ``floor_px`` its floor, :func:`spread_floor_px`).  mask (H, W) uint8, column (H, W)
-    float32, confidence (H, W) float32 as :func:`decode` makes them."""
+    float32, confidence (H, W) float32 as :func:`decode` makes them; ``sources`` (n,) int64
+    ascending flat indices of reported pixels the model treats as unreported for its distance
+    terms (the joined stripe transitions, :func:`gbscan.kernels.join_transitions`)."""
     from . import kernels
 
     spread = np.empty(mask.shape if want_spread else (0, 0), np.float32)
+    src = _NO_SOURCES if sources is None else np.ascontiguousarray(sources, dtype=np.int64)
     kernels.column_spread(column, mask, confidence, OK, SPREAD_ROUGH_ROWS, SPREAD_ROUGH_SCALE, SPREAD_EDGE_PX,
                           SPREAD_EDGE_CAP, float(floor_px), float(params.confidence_spread_px), CONF_FLOOR, spread,
-                          SPREAD_EDGE_ROWS_PX)
+                          SPREAD_EDGE_ROWS_PX, src)
     return spread if want_spread else None
 
 
@@ -1637,6 +1673,16 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         rim_rule(column_rel, un.region, reg_off, cls.reason, params)
     if late_spans is not None:
         _mark_spans(cls.reason, late_spans, UNINDEXED)
+    joined = _NO_SOURCES
+    if params.join_transitions and n_reg:
+        # one-pixel stripe transitions inside an indexed region that the classifier called dark
+        # (both channels under min_level) report their signal: ordinary pixels for finish_pixels
+        # and the guards.  After the rim rules: both neighbours passed them (the pixel's own
+        # column lies between theirs), and a pixel the rules read as signal-less keeps masking
+        # its stretch's end next to a silhouette (joined before them: sweep on depth edges +25)
+        joined = kernels.join_transitions(cls.reason, cls.labels, un.region, cls.gn, cls.bn, cls.contrast,
+                                          np.ascontiguousarray(idx.indexed, dtype=np.bool_),
+                                          float(params.min_level), float(params.min_contrast), DARK, OK)
     t6 = time.perf_counter()
     ms["subpixel"] = (t6 - t5) * 1e3
 
@@ -1665,7 +1711,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     if params.confidence_spread_px > 0:
         # (a fixed blur: the frame's noise for the model's floor all the same, ~0.1 ms)
         floor = spread_floor_px(snr if snr is not None else frame_snr(img, params), float(params.blur_sigma_along_px))
-        sigma = column_spread(mask, column, conf, params, floor_px=floor)
+        sigma = column_spread(mask, column, conf, params, floor_px=floor, sources=joined)
     t7 = time.perf_counter()
     ms["finish"] = (t7 - t6) * 1e3
     ms["total"] = (t7 - t0) * 1e3
@@ -1679,6 +1725,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     stats["weld_retry_px"] = int(un.stats.get("weld_retry_px", 0))
     # of the "rim" pixels: masked by the guard rows (rim_guard) and by the brightness-step guard
     stats["rim_guard_px"], stats["rim_step_px"] = int(n_guard), int(n_step)
+    stats["transitions_joined"] = int(joined.size)
     stats["ms"] = {k: round(v, 3) for k, v in ms.items()}
     stats["blur_sigma_along_px"] = float(params.blur_sigma_along_px)
     if math.isfinite(frame_px):

@@ -17,7 +17,7 @@ The kernels live in one module per concept and are all reachable here as ``kerne
 =================  =================================================================================
 ``segments``       paper steps 1-2: runs, segments, vertical votes, links, junctions, columns, cuts
 ``classify``       stages 1-3: blur, colour balance, threshold, classify; the fused ``stream_frame``
-``regions``        final masks (``finish_pixels``), region histograms and offset scores, step 7, rim
+``regions``        final masks (``finish_pixels``), dark transitions, region histograms and offset scores, step 7, rim
 ``linking``        vertical votes between rows, marker conflicts, the linking's slope samples and verdicts
 ``guards``         rim guard rows, stripe SNR, orphans, brightness-step guard, bridge cuts
 ``resample``       stripe width from runs, linear-light shrinking, expanding a coarse decode

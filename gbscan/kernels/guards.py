@@ -539,6 +539,14 @@ def _spread2_row(s, sn, dist, dist_v, rs, floor2, edge2, edge_v2, out):
         out[u] = floor2 + r * r + edge2 / dist[u] + edge_v2 / dist_v[u]
 
 
+@njit(cache=True, nogil=True)
+def _source_flags(flags, sources, i0, i1, base, out):
+    # out = flags with the sources i0 .. i1 - 1 (flat indices, row offset base) set to 1
+    out[:] = flags
+    for i in range(i0, i1):
+        out[sources[i] - base] = np.float32(1.0)
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _conf_row(cf, sp2, flags, inv_s02, cfl, q):
     # cf scaled toward cfl by 1 / (1 + sp2 / sigma0^2) where the pixel is reported
@@ -562,7 +570,7 @@ def _spread_out(sp2, flags, out):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px, edge_cap, floor_px, sigma0,
-                  conf_floor, spread, edge_rows_px):
+                  conf_floor, spread, edge_rows_px, sources):
     """Predicted error (projector px) of every reported pixel's column (``mask == ok_code``), and the
     pixel's confidence ``conf`` (H, W) float32 scaled by it in place:
     ``conf_floor + (conf - conf_floor) / (1 + (s / sigma0)^2)`` (``sigma0 <= 0``: untouched).
@@ -581,8 +589,13 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
       more compressed samples, are extrapolated, and may be pulled across a depth edge.
 
     ``s = sqrt(floor_px^2 + roughness^2 + edge_px^2 / d + edge_rows_px^2 / e)`` (``floor_px``:
-    the locator's noise on a smooth surface far from any edge, which no other term sees).  The
-    image border counts as reported.  ``column`` must be NaN exactly where the pixel is not
+    the locator's noise on a smooth surface far from any edge, which no other term sees).
+    ``sources`` (n,) int64 ascending flat indices ``v * W + u`` of reported pixels that count as
+    unreported for the distances all the same (the stripe transitions the decoder joined,
+    ``kernels.join_transitions``: the columns around a pixel both of whose colours the local
+    normalisation puts under ``min_level`` are as poor as next to a dropped one); a source's own
+    distances are to the nearest flagged pixel other than itself.  The image border counts as
+    reported.  ``column`` must be NaN exactly where the pixel is not
     reported (as the decoder makes it).  Two passes over the rows (up, then down), float32, in
     row loops that vectorise."""
     H, W = mask.shape
@@ -594,10 +607,30 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
     run = np.full(W, big, np.float32)
     bad = np.zeros(W + 2 * cap, np.float32)  # 1: unreported; padded by cap reported pixels each side
     badr = bad[cap:cap + W]
+    # the distances' flags: the same array, or with the sources set too
+    ns = sources.shape[0]
+    dist = np.zeros(W + 2 * cap, np.float32) if ns else bad
+    distr = dist[cap:cap + W]
+    first = np.zeros(H + 1, np.int64)        # sources of row v: first[v] .. first[v + 1] - 1
+    for i in range(ns):
+        first[sources[i] // W + 1] += 1
+    for v in range(H):
+        first[v + 1] += first[v]
+    keep = np.empty(W, np.float32)           # a row's sources: their run before their own flag, + 1
+    one = np.float32(1.0)
     for v in range(H):                       # upwards: the rows above
         _flag_row(mask[v], ok_code, badr)
-        _run_step(run, badr, capf, big)
+        i0 = first[v]
+        i1 = first[v + 1]
+        if i1 > i0:                          # (rows without sources: the flags themselves)
+            _source_flags(badr, sources, i0, i1, v * W, distr)
+            for i in range(i0, i1):
+                keep[i - i0] = run[sources[i] - v * W] + one
+        _run_step(run, distr if i1 > i0 else badr, capf, big)
         _store_run(run, above[v])
+        for i in range(i0, i1):              # a source's own distance: to the flag before it
+            r = keep[i - i0]
+            above[v, sources[i] - v * W] = np.uint8(r) if r <= capf else np.uint8(255)
     # downwards, with the roughness's window sums (rings of second-difference rows and of their
     # defined flags) and the result
     nr = 2 * h + 2
@@ -640,11 +673,22 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
             _add_into(s, d2[k], minus)
             _add_into(sn, n2[k], minus)
         _flag_row(mask[v], ok_code, badr)
-        _row_dist(bad, cap, big, dr)         # along the row
+        i0 = first[v]
+        i1 = first[v + 1]
+        if i1 > i0:
+            _source_flags(badr, sources, i0, i1, v * W, distr)
+            for i in range(i0, i1):
+                keep[i - i0] = run[sources[i] - v * W] + one
+        _row_dist(dist if i1 > i0 else bad, cap, big, dr)   # along the row (a source's own: to the nearest other)
         dv[:] = big
         _min_stored(dv, above[v])            # above
-        _run_step(run, badr, capf, big)      # below
+        _run_step(run, distr if i1 > i0 else badr, capf, big)   # below
         _min_into(dv, run)
+        for i in range(i0, i1):              # a source's own distance below: to the flag after it
+            u = sources[i] - v * W
+            a = above[v, u]
+            r = keep[i - i0]
+            dv[u] = min(big if a == 255 else np.float32(a), r if r <= capf else big)
         _spread2_row(s, sn, dr, dv, rs, floor2, edge2, edge_v2, sp2)
         if sigma0 > 0:
             _conf_row(conf[v], sp2, badr, inv_s02, cfl, q)

@@ -458,6 +458,68 @@ def _abs_row(column_rel, region, off1, v, kk, tmp, out, weight):
     return True
 
 
+@njit(cache=True, nogil=True)
+def join_transitions(reason, labels, region, gn, bn, contrast, reg_indexed, min_level, min_contrast, dark_code,
+                     ok_code):
+    """Give back the signal of stripe-transition pixels the classifier called dark (see
+    :func:`gbscan.decode.decode`, ``DecodeParams.join_transitions``).
+
+    A pixel is one when its ``reason`` (H, W) uint8 is ``dark_code``, its label NONE, and
+    * its row neighbours are GREEN and BLUE (either order), both with reason ``ok_code``;
+    * both lie in one region ``k`` of ``region`` (H, W) int32 with ``reg_indexed[k]``, and the
+      pixel itself in no region or in ``k`` (the unwrapping counted it as the transition
+      between them: a one-pixel gap between two colours is one, ``row_segments``);
+    * its normalised channels ``gn + bn`` reach ``min_level`` (a transition's pixel has about
+      half of each; the unlit side of a shadow has neither) and its ``contrast`` reaches
+      ``min_contrast`` (the modulation a labelled pixel needs).
+    Its reason becomes ``ok_code`` in place; the label stays NONE, so the unwrapping and indexing
+    that already ran are unchanged.  One pass; a pixel's test reads only labels, regions and the
+    reasons of labelled pixels, which the pass does not change, so the order does not matter.
+    Returns the joined pixels' flat indices ``v * W + u`` (n,) int64, ascending.
+    """
+    H, W = reason.shape
+    n = 0
+    out = np.empty(64, np.int64)
+    dc = np.uint8(dark_code)
+    oc = np.uint8(ok_code)
+    nb = np.uint8(NONE)
+    gb = np.uint8(GREEN + BLUE)   # the only pair of labels other than NONE that sums to it (CYAN = 3 with NONE)
+    flag = np.zeros(W, np.uint8)
+    for v in range(H):
+        rr = reason[v]
+        ll = labels[v]
+        rg = region[v]
+        # candidates, branch-free over the row (the background is dark and NONE too): a dark NONE
+        # pixel between a green and a blue one
+        anyf = np.uint8(0)
+        for u in range(1, W - 1):
+            a = ll[u - 1]
+            c = ll[u + 1]
+            f = np.uint8((rr[u] == dc) & (ll[u] == nb) & (a != nb) & (c != nb) & (np.uint8(a + c) == gb))
+            flag[u] = f
+            anyf |= f
+        if anyf == 0:
+            continue
+        for u in range(1, W - 1):
+            if flag[u] == 0:
+                continue
+            if rr[u - 1] != oc or rr[u + 1] != oc:
+                continue
+            k = rg[u - 1]
+            if k < 0 or rg[u + 1] != k or (rg[u] >= 0 and rg[u] != k) or not reg_indexed[k]:
+                continue
+            if gn[v, u] + bn[v, u] < min_level or contrast[v, u] < min_contrast:
+                continue
+            rr[u] = oc
+            if n == out.size:
+                grown = np.empty(2 * n, np.int64)
+                grown[:n] = out
+                out = grown
+            out[n] = v * W + u
+            n += 1
+    return out[:n].copy()
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, rim_code, pull_out):
     """Mask ``rim_code`` into ``reason`` (H, W) uint8, in place where it is 0, where a column is
