@@ -208,7 +208,8 @@ def main(argv=None) -> int:
     ap.add_argument("--unwrap", action="append", default=[], metavar="NAME=VALUE",
                     help="override an UnwrapParams field (repeatable), e.g. --unwrap link_rows=3")
     ap.add_argument("--decode", action="append", default=[], metavar="NAME=VALUE",
-                    help="override a DecodeParams number (repeatable), e.g. --decode blur_sigma_along_px=1")
+                    help="override a DecodeParams field (repeatable), e.g. --decode blur_sigma_along_px=1, "
+                         "--decode join_transitions=false")
     ap.add_argument("--depth-range", type=float, nargs=2, metavar=("MIN_MM", "MAX_MM"),
                     help="a working volume for the indexing prior, as gbscan scan --depth-range (the paper "
                          "rig's true calibration); default: none")
@@ -229,6 +230,7 @@ def main(argv=None) -> int:
 
     from dataclasses import replace
 
+    from gbscan.commands.decode import pairs_to_kwargs
     from gbscan.decode import DecodeParams
     from gbscan.errors import GBError
     from gbscan.io import make_dir
@@ -237,27 +239,23 @@ def main(argv=None) -> int:
     cache = Path(args.cache) if args.cache else None
     if cache is not None:
         make_dir(cache, "--cache")
-    over = {}
-    for item in args.unwrap:
-        name, _, val = item.partition("=")
-        if name not in UnwrapParams.__dataclass_fields__ or not val:
-            raise GBError(f"--unwrap {item!r}: expected NAME=VALUE with NAME a field of gbscan.unwrap.UnwrapParams")
-        over[name] = type(getattr(UnwrapParams(), name))(float(val))
-    dover = {}
-    for item in args.decode:
-        name, _, val = item.partition("=")
-        fields = DecodeParams.__dataclass_fields__
-        cur = getattr(DecodeParams(), name, None) if name in fields else None
-        typ = str(fields[name].type) if name in fields else ""
-        optional = name in fields and cur is None and ("float" in typ or "int" in typ)   # the blur, the balance window
-        if not (optional or isinstance(cur, (int, float))) or isinstance(cur, bool) or not val:
-            raise GBError(f"--decode {item!r}: expected NAME=VALUE with NAME a numeric field of "
-                          "gbscan.decode.DecodeParams")
-        if optional:
-            dover[name] = int(float(val)) if typ.startswith("int") else float(val)
-        else:
-            dover[name] = type(cur)(float(val))
-    params = DecodeParams(unwrap=UnwrapParams(**over), **dover)
+    try:
+        over = {}
+        for item in args.unwrap:
+            name, _, val = item.partition("=")
+            if name not in UnwrapParams.__dataclass_fields__ or not val:
+                raise GBError(f"--unwrap {item!r}: expected NAME=VALUE with NAME a field of gbscan.unwrap.UnwrapParams")
+            try:
+                over[name] = type(getattr(UnwrapParams(), name))(float(val))
+            except ValueError:
+                raise GBError(f"--unwrap {item!r}: {val!r} is not a number") from None
+        dover = pairs_to_kwargs(DecodeParams, args.decode, "--decode")   # numbers, switches, unwrap.NAME
+        if over and "unwrap" in dover:
+            raise GBError("--unwrap and --decode unwrap.NAME=VALUE: give the unwrapping's fields one way")
+        over = {"unwrap": UnwrapParams(**over)} if over or "unwrap" not in dover else {}
+        params = DecodeParams(**over, **dover)
+    except GBError as e:
+        ap.error(str(e))
     scenes = [s for s in scene_list(args.quick) if not args.only or args.only in s[0]]
     if args.depth_range is not None and not 0 < args.depth_range[0] < args.depth_range[1]:
         ap.error(f"--depth-range: expected 0 < MIN_MM < MAX_MM, got {args.depth_range}")
