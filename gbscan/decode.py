@@ -420,7 +420,9 @@ class StripeMap:
     """Decoder output for one frame (H, W = camera image size).
 
     column : (H, W) float32 continuous projector column (px), NaN where not reported.
-    stripe : (H, W) int32 absolute stripe index of the pixel's colour run, -1 where not reported.
+    stripe : (H, W) int32 absolute stripe index of the pixel's colour run, -1 where not reported
+        (a joined stripe transition, ``DecodeParams.join_transitions``, has no run of its own:
+        one of the two stripes it divides; its label stays NONE).
     confidence : (H, W) float32 in [0, 1], 0 where not reported; at least 0.25 where reported.
         How far to trust the pixel: the margin of its region's marker index, its contrast, and
         its predicted column error (``DecodeParams.confidence_spread_px``).
