@@ -19,7 +19,9 @@ Pipeline (each step a named function; the paper's steps 1-4, then beyond the pap
    after it).
 6. :func:`subpixel_boundaries` + column interpolation -- stripe boundaries to a fraction of a
    camera pixel, refined by a local fit along the row (:func:`fit_boundaries`), then each
-   pixel's continuous projector column.
+   pixel's continuous projector column; the rim rules (:func:`rim_rule`), then the one-pixel
+   stripe transitions step 3 called dark are reported where both neighbours are
+   (``DecodeParams.join_transitions``), then the final masks and the guards.
 
 Conventions: image ``(H, W, 3)`` RGB, arrays indexed ``[v, u]``, pixel centres at integers,
 projector columns in projector px with boundary ``k`` at ``k * stripe_px - 0.5``.

@@ -2145,6 +2145,9 @@ def test_joined_transitions_add_face_pixels_on_their_stripes():
     on = decode(r.image, PatternSpec())
     off = decode(r.image, PatternSpec(), DecodeParams(join_transitions=False))
     assert off.stats["transitions_joined"] == 0 < on.stats["transitions_joined"]
+    from gbscan.commands.decode import summary
+    assert f"{on.stats['transitions_joined']} one-pixel stripe transitions called dark joined" in summary(on)
+    assert "called dark joined" not in summary(off)
     extra = good & on.valid & ~off.valid
     print(f"head: {int((good & off.valid).sum())} -> {int((good & on.valid).sum())} lit non-edge pixels, "
           f"{on.stats['transitions_joined']} joined")

@@ -228,7 +228,10 @@ def summary(sm) -> str:
         text += (f"Regions: {st.get('regions_found', 0)} found, {st['regions_kept']} kept, "
                  f"{st.get('regions_indexed', 0)} indexed, {st.get('regions_unindexed', 0)} unindexed"
                  f" ({', '.join(f'{k}: {v}' for k, v in st.get('region_why', {}).items())}); "
-                 f"{st.get('boundaries', 0)} stripe boundaries. ")
+                 f"{st.get('boundaries', 0)} stripe boundaries")
+        if st.get("transitions_joined"):
+            text += f", {st['transitions_joined']} one-pixel stripe transitions called dark joined"
+        text += ". "
     if "why" in st:
         text += st["why"] + ". "
     if "blur_sigma_along_px" in st:
