@@ -239,21 +239,14 @@ def main(argv=None) -> int:
     cache = Path(args.cache) if args.cache else None
     if cache is not None:
         make_dir(cache, "--cache")
-    try:
-        over = {}
-        for item in args.unwrap:
-            name, _, val = item.partition("=")
-            if name not in UnwrapParams.__dataclass_fields__ or not val:
-                raise GBError(f"--unwrap {item!r}: expected NAME=VALUE with NAME a field of gbscan.unwrap.UnwrapParams")
-            try:
-                over[name] = type(getattr(UnwrapParams(), name))(float(val))
-            except ValueError:
-                raise GBError(f"--unwrap {item!r}: {val!r} is not a number") from None
-        dover = pairs_to_kwargs(DecodeParams, args.decode, "--decode")   # numbers, switches, unwrap.NAME
+    try:   # the fields as the commands' --decode-param reads them (numbers, switches, none)
+        over = pairs_to_kwargs(UnwrapParams, args.unwrap, "--unwrap")
+        dover = pairs_to_kwargs(DecodeParams, args.decode, "--decode")   # unwrap.NAME too
         if over and "unwrap" in dover:
             raise GBError("--unwrap and --decode unwrap.NAME=VALUE: give the unwrapping's fields one way")
-        over = {"unwrap": UnwrapParams(**over)} if over or "unwrap" not in dover else {}
-        params = DecodeParams(**over, **dover)
+        if over or "unwrap" not in dover:
+            dover["unwrap"] = UnwrapParams(**over)
+        params = DecodeParams(**dover)
     except GBError as e:
         ap.error(str(e))
     scenes = [s for s in scene_list(args.quick) if not args.only or args.only in s[0]]
