@@ -540,11 +540,14 @@ def _spread2_row(s, sn, dist, dist_v, rs, floor2, edge2, edge_v2, out):
 
 
 @njit(cache=True, nogil=True)
-def _source_flags(flags, sources, i0, i1, base, out):
-    # out = flags with the sources i0 .. i1 - 1 (flat indices, row offset base) set to 1
+def _source_flags(flags, sources, i0, i1, base, out, run, keep):
+    # out = flags with the sources i0 .. i1 - 1 (flat indices, row offset base) set to 1, and
+    # keep[i - i0] = run + 1 at each source (its run before its own flag, for its own distance)
     out[:] = flags
     for i in range(i0, i1):
-        out[sources[i] - base] = np.float32(1.0)
+        u = sources[i] - base
+        out[u] = np.float32(1.0)
+        keep[i - i0] = run[u] + np.float32(1.0)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -617,15 +620,12 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
     for v in range(H):
         first[v + 1] += first[v]
     keep = np.empty(W, np.float32)           # a row's sources: their run before their own flag, + 1
-    one = np.float32(1.0)
     for v in range(H):                       # upwards: the rows above
         _flag_row(mask[v], ok_code, badr)
         i0 = first[v]
         i1 = first[v + 1]
         if i1 > i0:                          # (rows without sources: the flags themselves)
-            _source_flags(badr, sources, i0, i1, v * W, distr)
-            for i in range(i0, i1):
-                keep[i - i0] = run[sources[i] - v * W] + one
+            _source_flags(badr, sources, i0, i1, v * W, distr, run, keep)
         _run_step(run, distr if i1 > i0 else badr, capf, big)
         _store_run(run, above[v])
         for i in range(i0, i1):              # a source's own distance: to the flag before it
@@ -676,9 +676,7 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
         i0 = first[v]
         i1 = first[v + 1]
         if i1 > i0:
-            _source_flags(badr, sources, i0, i1, v * W, distr)
-            for i in range(i0, i1):
-                keep[i - i0] = run[sources[i] - v * W] + one
+            _source_flags(badr, sources, i0, i1, v * W, distr, run, keep)
         _row_dist(dist if i1 > i0 else bad, cap, big, dr)   # along the row (a source's own: to the nearest other)
         dv[:] = big
         _min_stored(dv, above[v])            # above
