@@ -1,9 +1,9 @@
 """Speed and memory of the single-shot decoder, with peers on equivalent frames.
 
-    python scripts/bench_decode.py [--runs N] [--threads 1] [--scene plane|head|multi_object] [--preset typical]
+    python scripts/bench_decode.py [--runs N] [--threads 1] [--scene plane|head|sphere|multi_object] [--preset typical]
 
-Renders a plane at 650 mm (or ``--scene``: the head, the multi-object scene, at their default
-distance; ``--preset`` the conditions) once per size (640x480 with the paper's rig; 1280x1024 with the same
+Renders a plane at 650 mm (or ``--scene``: the head, the sphere, the multi-object scene, at their
+default distance; ``--preset`` the conditions) once per size (640x480 with the paper's rig; 1280x1024 with the same
 lens scaled, supersample 1 to keep rendering short), then prints the median milliseconds per
 decoder stage and in total over N runs, and peak memory (tracemalloc: numpy buffers; OpenCV's
 own buffers are not traced).  Peers on the same sizes:
@@ -19,7 +19,9 @@ frame whose stripes are wide in the camera (the 1280x1024 one: ~7.4 px per strip
 shrunk by default (``DecodeParams.resample``); the script then also times the decoder at the
 frame's own size (``--resample never``), its throughput there.  A frame decoded shrunk expands
 only the maps a scan reads (column, stripe, confidence, mask); the others are expanded when first
-read, and the script prints what reading them as well costs.
+read, and the script prints what reading them as well costs.  A frame whose object stands before
+darkness (the head, the sphere) is decoded in its lit window alone (``DecodeParams.crop``, the same
+result); the script then also times the whole frame (``--decode-param crop=false``).
 
 Also printed: CPU milliseconds of the calling thread (less sensitive than wall time to other
 processes on the machine), minor page faults per frame (fresh output pages: on this virtual
@@ -162,7 +164,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--sizes", default="640,1280", type=_widths,
                     help="camera widths, comma-separated (640 -> 640x480, 1280 -> 1280x1024)")
-    ap.add_argument("--scene", default="plane", choices=("plane", "head", "multi_object"))
+    ap.add_argument("--scene", default="plane", choices=("plane", "head", "sphere", "multi_object"))
     ap.add_argument("--preset", default="typical", choices=("clean", "typical", "hard"))
     ap.add_argument("--no-peers", action="store_true", help="decoder figures only (skip FTP and Gray code)")
     ap.add_argument("--malloc", choices=("keep", "system"), default="keep",
@@ -192,10 +194,16 @@ def main(argv=None) -> int:
         H, W = img.shape[:2]
         log("warming up (numba kernels) ...")
         runs = [("", DecodeParams())]
-        if "resample" in decode(img, spec).stats:
+        first = decode(img, spec)
+        if "resample" in first.stats:
             # a frame of wide stripes: decoded shrunk (the default); the decoder at the frame's own
             # size as well (its throughput; results with wrong pixels there, see resample_study.py)
             runs.append((" (as it is: --resample never)", DecodeParams(resample=1.0)))
+        y0, y1, x0, x1 = first.stats["decoded_window"]
+        if "resample" not in first.stats and (y1 - y0, x1 - x0) != (H, W):
+            # an object before darkness: its lit window decoded alone (the default); the whole
+            # frame as well, the same result (DecodeParams.crop)
+            runs.append((" (whole frame: --decode-param crop=false)", DecodeParams(crop=False)))
         for label, prm in runs:
             decode(img, spec, prm)
             stage_runs = []
@@ -207,6 +215,10 @@ def main(argv=None) -> int:
             release_workspace()
             mem = peak_mb(lambda: decode(img, spec, prm))
             shrunk = f", decoded shrunk by {sm.stats['resample']:g}" if "resample" in sm.stats else ""
+            y0, y1, x0, x1 = sm.stats["decoded_window"]
+            if "resample" not in sm.stats and (y1 - y0, x1 - x0) != (H, W):
+                shrunk = (f", lit window {x1 - x0}x{y1 - y0} decoded ({(y1 - y0) * (x1 - x0) / (H * W) * 100:.0f}% "
+                          f"of the frame)")
             print(f"\n## {W}x{H}: gbscan decode{label}  total {total:.2f} ms  (target {'3' if W <= 640 else '12'} ms)  "
                   f"cpu {cpu:.2f} ms, {faults:.0f} page faults/frame, reported {sm.valid.mean() * 100:.1f}% of pixels"
                   f"{shrunk}")

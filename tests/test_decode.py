@@ -2158,3 +2158,86 @@ def test_joined_transitions_add_face_pixels_on_their_stripes():
     rms = lambda m: float(np.sqrt(np.mean((on.column - T)[m] ** 2)))  # noqa: E731
     print(f"column RMS: joined and freed {rms(extra):.3f}, others {rms(good & off.valid):.3f} projector px")
     assert rms(extra) < 2.0 * rms(good & off.valid)
+
+
+# -- the lit window (DecodeParams.crop) --------------------------------------------------------------
+def test_bright_window_kernel_is_the_bounding_box_of_bright_green_or_blue():
+    from gbscan import kernels
+
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        img = rng.integers(0, 29, (37, 53, 3), dtype=np.uint8)
+        img[..., 0] = 255                               # red is never read
+        n = int(rng.integers(0, 4))
+        for _ in range(n):
+            img[rng.integers(0, 37), rng.integers(0, 53), rng.integers(1, 3)] = rng.integers(29, 256)
+        bright = img[..., 1:].max(axis=2) >= 29
+        got = kernels.bright_window(img, np.uint8(29))
+        if not bright.any():
+            assert got == (0, 0, 0, 0)
+            continue
+        ys, xs = np.nonzero(bright.any(axis=1))[0], np.nonzero(bright.any(axis=0))[0]
+        assert got == (ys[0], ys[-1] + 1, xs[0], xs[-1] + 1)
+
+
+def test_lit_window_grows_the_bright_box_by_the_reach_and_gives_up_when_it_is_large():
+    from gbscan.decode import CROP_REACH_PX, lit_window
+
+    p = DecodeParams()
+    level = int(np.searchsorted(decode_module.gamma_lut(p.camera_gamma), p.dark_level))
+    img = np.zeros((480, 640, 3), np.uint8)
+    img[200:220, 300:330, 2] = 200
+    my, mx = 2 * (3 + 7) + CROP_REACH_PX, 2 * max(7, 2 * 7) + CROP_REACH_PX    # radius 3, windows 15 and 15
+    assert lit_window(img, p, 3, 15, 15) == (200 - my, 220 + my, 300 - mx, 330 + mx)
+    img[5, 630, 1] = level                              # one more bright pixel, near a corner: clipped
+    assert lit_window(img, p, 3, 15, 15) == (0, 220 + my, 300 - mx, 640)
+    img[5, 630, 1] = level - 1                          # under dark_level: not bright
+    assert lit_window(img, p, 3, 15, 15) == (200 - my, 220 + my, 300 - mx, 330 + mx)
+    assert lit_window(img, p, 3, 0, 15)[0] == 200 - (6 + CROP_REACH_PX)   # global threshold: no window
+    img[470, 10, 1] = img[5, 630, 1] = 255              # the box then spans most of the frame
+    assert lit_window(img, p, 3, 15, 15) is None
+    assert lit_window(np.zeros_like(img), p, 3, 15, 15) is None           # nothing bright
+    img[:] = 0
+    img[200:220, 300:330, 0] = 255                      # red alone is not read
+    assert lit_window(img, p, 3, 15, 15) is None
+    img[200:220, 300:330, 2] = 200
+    assert lit_window(img, DecodeParams(saturation_level=level), 3, 15, 15) is None  # a dark pixel could be saturated
+
+
+_WINDOW_CASES = [
+    ("head", "typical", {}, 0),
+    ("head", "hard", {}, 1),
+    ("sphere", "typical", {"centre_mm": (150.0, -110.0, 650.0)}, 0),     # the window at the top and right edges
+    ("sphere", "typical", {"centre_mm": (-170.0, 0.0, 650.0)}, 2),       # ... at the left edge
+    ("sphere", "hard", {}, 1),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene, preset, kw, seed", _WINDOW_CASES)
+def test_lit_window_decodes_bit_identically_to_the_whole_frame(scene, preset, kw, seed):
+    """An object before a dark background: decoding its lit window alone gives every map, count and
+    statistic of the whole frame's decode, bit for bit (the boundary positions and columns too: the
+    kernels compute in the frame's coordinates)."""
+    img = render(scene, preset, seed=seed, **kw).image
+    a = decode(img, PatternSpec())
+    b = decode(img, PatternSpec(), DecodeParams(crop=False))
+    y0, y1, x0, x1 = a.stats["decoded_window"]
+    assert (y1 - y0) * (x1 - x0) < 0.6 * img.shape[0] * img.shape[1]        # the window was used
+    assert b.stats["decoded_window"] == [0, img.shape[0], 0, img.shape[1]]
+    for name in _STRIPEMAP_ARRAYS + ("column_sigma",):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.shape == y.shape and x.dtype == y.dtype, name
+        assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), name
+    strip = lambda st: {k: v for k, v in st.items() if k not in ("ms", "decoded_window")}  # noqa: E731
+    assert strip(a.stats) == strip(b.stats)
+    assert a.valid.sum() > 1000                      # a frame that decodes (the comparison is not vacuous)
+    from gbscan.commands.decode import summary
+
+    assert f"Lit window {x1 - x0}x{y1 - y0} at ({x0}, {y0}) decoded alone" in summary(a)
+    assert "Lit window" not in summary(b)
+
+
+def test_crop_param_is_validated():
+    with pytest.raises(GBError, match="crop"):
+        DecodeParams(crop=1)

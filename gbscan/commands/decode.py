@@ -242,6 +242,12 @@ def summary(sm) -> str:
         px = f" ({st['stripe_camera_px']:g} camera px per stripe)" if "stripe_camera_px" in st else ""
         text += (f"Wide stripes{px}: decoded shrunk by {st['resample']:g} to {w}x{h} and expanded back to every "
                  "pixel. ")
+    if "decoded_window" in st:
+        y0, y1, x0, x1 = st["decoded_window"]
+        W, H = st["decoded_size"] if "decoded_size" in st else sm.mask.shape[::-1]
+        if (y1 - y0, x1 - x0) != (H, W):
+            text += (f"Lit window {x1 - x0}x{y1 - y0} at ({x0}, {y0}) decoded alone "
+                     f"({100.0 * (y1 - y0) * (x1 - x0) / max(H * W, 1):.0f}% of the frame; the rest is dark). ")
     total_ms = st.get("ms", {}).get("total")
     if total_ms is not None:
         text += f"Decoded in {total_ms:.1f} ms."

@@ -1275,3 +1275,34 @@ def stream_frame(img, lut, kh, sg, sb, thr_w, norm_w, cyan_level, min_level, raw
                        min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, sc,
                        labels, reason, gn, bn, contrast)
     return top
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def bright_window(img, level):
+    """The smallest window holding every pixel of an RGB uint8 frame (H, W, 3) whose green or blue
+    byte is at least ``level``: (y0, y1, x0, x1), half-open; (0, 0, 0, 0) when there is none.
+    One pass over the rows: a row's largest green/blue byte (vectorised), and its first and last
+    bright pixel only for rows that have one (``gbscan.decode`` decodes a frame's lit window)."""
+    H, W = img.shape[0], img.shape[1]
+    flat = img.reshape(H, 3 * W)
+    y0, y1, x0, x1 = H, 0, W, 0
+    for v in range(H):
+        px = flat[v]
+        m = np.uint8(0)
+        for u in range(W):
+            m = max(m, max(px[3 * u + 1], px[3 * u + 2]))
+        if m < level:
+            continue
+        y0 = min(y0, v)
+        y1 = v + 1
+        a = 0
+        while max(px[3 * a + 1], px[3 * a + 2]) < level:
+            a += 1
+        b = W - 1
+        while max(px[3 * b + 1], px[3 * b + 2]) < level:
+            b -= 1
+        x0 = min(x0, a)
+        x1 = max(x1, b + 1)
+    if y1 == 0:
+        return 0, 0, 0, 0
+    return y0, y1, x0, x1

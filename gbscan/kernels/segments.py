@@ -540,8 +540,10 @@ def resolve_roots(parent, pot):
 
 
 @njit(cache=True, nogil=True)
-def subpixel_junctions(gn, bn, seg_row, j_ua, j_ub, j_la, j_lb, seg_u0, seg_u1, j_seg):
-    """Sub-pixel position (camera px, along the row) of every junction (stripe boundary).
+def subpixel_junctions(gn, bn, seg_row, j_ua, j_ub, j_la, j_lb, seg_u0, seg_u1, j_seg, ox=0):
+    """Sub-pixel position (camera px, along the row) of every junction (stripe boundary); ``ox``
+    the column of the frame where the arrays start (a decoded window): the positions are the
+    frame's, computed as the whole frame's decode computes them (the same float rounding).
 
     ``gn, bn`` are the colour channels normalised to [0, 1] between their local minimum and
     maximum.  The boundary is the crossing of the channel(s) that change: ``gn = bn`` for green|blue
@@ -560,7 +562,7 @@ def subpixel_junctions(gn, bn, seg_row, j_ua, j_ub, j_la, j_lb, seg_u0, seg_u1, 
         lb = j_lb[j]
         a = max(j_ua[j] - 1, seg_u0[s])
         b = min(j_ub[j] + 1, seg_u1[s])
-        mid = 0.5 * (j_ua[j] + j_ub[j])
+        mid = 0.5 * ((j_ua[j] + ox) + (j_ub[j] + ox))
         best = np.nan
         bestd = 1e9
         f0 = 0.0
@@ -580,7 +582,7 @@ def subpixel_junctions(gn, bn, seg_row, j_ua, j_ub, j_la, j_lb, seg_u0, seg_u1, 
             else:
                 f = gn[v, u] - bn[v, u]
             if u > a and f0 < 0.0 and f >= 0.0:
-                x = (u - 1) + f0 / (f0 - f)
+                x = (u - 1 + ox) + f0 / (f0 - f)
                 d = abs(x - mid)
                 if d < bestd:
                     bestd = d
@@ -633,8 +635,10 @@ def fit_junctions(j_x, seg_j0, seg_j1, coef):
 
 @njit(cache=True, nogil=True)
 def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j_x, j_bnd, stripe_px,
-                        extrapolate, contact_ratio=0.0, end_fit=0, contact_gap_px=1):
-    """Continuous projector column of every pixel of the accepted segments.
+                        extrapolate, contact_ratio=0.0, end_fit=0, contact_gap_px=1, ox=0):
+    """Continuous projector column of every pixel of the accepted segments.  ``ox``: the frame's
+    column where the (H, W) arrays start (a decoded window); ``j_x`` are the frame's positions
+    (:func:`subpixel_junctions` with the same ``ox``) and a pixel's position is ``u + ox``.
 
     Between two consecutive boundaries at camera positions ``x_k < x_{k+1}`` with projector columns
     ``c_k, c_{k+1}`` (``c = index * stripe_px - 0.5``) a pixel at ``u`` gets
@@ -691,43 +695,46 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
         crow = col[v]
         u = seg_u0[s]
         u_end = seg_u1[s]
+        # positions p = u + ox (the frame's column), the array index u = p - ox
+        p = u + ox
+        p_end = u_end + ox
         if contact_ratio > 0:
             if s > 0 and seg_row[s - 1] == v and seg_u1[s - 1] >= u - 1 - contact_gap_px and \
                     _spacing_jump(sp_last[s - 1], sp_first[s], contact_ratio):
-                u = max(u, np.int64(np.ceil(xs[0])))
+                p = max(p, np.int64(np.ceil(xs[0])))
             if s + 1 < ns and seg_row[s + 1] == v and seg_u0[s + 1] <= u_end + 1 + contact_gap_px and \
                     _spacing_jump(sp_last[s], sp_first[s + 1], contact_ratio):
-                u_end = min(u_end, np.int64(np.floor(xs[n - 1])))
+                p_end = min(p_end, np.int64(np.floor(xs[n - 1])))
         # per interval k: its pixels are those the per-pixel rule gives it (the largest k <= n-2
-        # with u >= xs[k], the first interval also left of xs[0]); only pixels outside
+        # with p >= xs[k], the first interval also left of xs[0]); only pixels outside
         # [xs[k], xs[k+1]] (extrapolated: first and last interval) need the reach test, the rest
         # is one branch-free loop with the interval's slope (the same expression per pixel)
         k = 0
-        while u <= u_end:
-            while k < n - 2 and u >= xs[k + 1]:
+        while p <= p_end:
+            while k < n - 2 and p >= xs[k + 1]:
                 k += 1
             x0 = xs[k]
             x1 = xs[k + 1]
             slope = (cs[k + 1] - cs[k]) / (x1 - x0)
             reach = extrapolate * (x1 - x0)
             c0 = cs[k]
-            last = u_end if k == n - 2 else min(u_end, np.int64(np.ceil(xs[k + 1])) - 1)
+            last = p_end if k == n - 2 else min(p_end, np.int64(np.ceil(xs[k + 1])) - 1)
             # pixels left of x0 (first interval only), then inside [x0, x1], then right of x1
-            while u <= last and u < x0:
-                if not (x0 - u > reach):
-                    crow[u] = _end_value(fl_ok, fl_a, fl_b, fl_q, u - x0, c0 + (u - x0) * slope, slope)
-                u += 1
+            while p <= last and p < x0:
+                if not (x0 - p > reach):
+                    crow[p - ox] = _end_value(fl_ok, fl_a, fl_b, fl_q, p - x0, c0 + (p - x0) * slope, slope)
+                p += 1
             mid = min(last, np.int64(np.floor(x1)))
-            if u <= mid:
-                seg_row_out = crow[u:mid + 1]
-                for i in range(mid + 1 - u):
-                    seg_row_out[i] = c0 + ((u + i) - x0) * slope
-                u = mid + 1
-            while u <= last:
-                if not (u - x1 > reach):
-                    lin = c0 + (u - x0) * slope
-                    crow[u] = _end_value(fr_ok, fr_a, fr_b, fr_q, u - x1, lin, slope) if k == n - 2 else lin
-                u += 1
+            if p <= mid:
+                seg_row_out = crow[p - ox:mid + 1 - ox]
+                for i in range(mid + 1 - p):
+                    seg_row_out[i] = c0 + ((p + i) - x0) * slope
+                p = mid + 1
+            while p <= last:
+                if not (p - x1 > reach):
+                    lin = c0 + (p - x0) * slope
+                    crow[p - ox] = _end_value(fr_ok, fr_a, fr_b, fr_q, p - x1, lin, slope) if k == n - 2 else lin
+                p += 1
     return col
 
 
