@@ -2,6 +2,7 @@
 
     python scripts/resample_study.py [--scales 1,2,3] [--scenes plane,sphere,head,multi_object]
                                      [--preset typical] [--seed 0] [--resample 0,1]
+                                     [--decode-param NAME=VALUE ...]
 
 The paper rig's camera has 640x480 pixels (fx 800): a stripe of 8 projector px spans ~3.7
 camera px at 650 mm, the width the decoder's pixel-sized rules are tuned for.  A camera of
@@ -46,6 +47,9 @@ def main(argv=None) -> int:
                     help="rays per pixel side (default 2: each camera pixel integrates 4 samples, as a sensor "
                          "integrates over its area; 1 samples the pixel centre only and aliases the stripes)")
     ap.add_argument("--resample", default="0,1", help="DecodeParams.resample values to compare (default 0,1)")
+    ap.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
+                    help="a DecodeParams field off its default for every decode (repeatable; unwrap.NAME=VALUE for "
+                         "the unwrapping's), e.g. crop=false")
     args = ap.parse_args(argv)
     try:
         scales = [float(x) for x in args.scales.split(",") if x.strip()]
@@ -75,8 +79,11 @@ def main(argv=None) -> int:
     for n in names:
         if not callable(getattr(sim.scenes, n, None)):
             ap.error(f"--scenes: no simulated scene {n!r} in gbscan.sim.scenes")
+    from gbscan.commands.decode import pairs_to_kwargs
+
     try:
-        params = {f: DecodeParams(resample=f) for f in factors}
+        over = pairs_to_kwargs(DecodeParams, args.decode_param, "--decode-param")
+        params = {f: DecodeParams(**{**over, "resample": f}) for f in factors}
     except GBError as e:
         ap.error(str(e))
     cond = dataclasses.replace(sim.preset(args.preset), supersample=args.supersample)

@@ -244,7 +244,7 @@ def summary(sm) -> str:
                  "pixel. ")
     if "decoded_window" in st:
         y0, y1, x0, x1 = st["decoded_window"]
-        W, H = st["decoded_size"] if "decoded_size" in st else sm.mask.shape[::-1]
+        H, W = sm.mask.shape
         if (y1 - y0, x1 - x0) != (H, W):
             text += (f"Lit window {x1 - x0}x{y1 - y0} at ({x0}, {y0}) decoded alone "
                      f"({100.0 * (y1 - y0) * (x1 - x0) / max(H * W, 1):.0f}% of the frame; the rest is dark). ")
