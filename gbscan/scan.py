@@ -19,6 +19,7 @@ the same pipeline from them.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -338,6 +339,9 @@ class Scanner:
             are counted as ``not_decoded``.
         column_sigma : (H, W) predicted error of each column (px) or None; gives
             :attr:`Scan.sigma_mm` and is required by the cleaning's ``max_sigma_mm``.
+
+        The cleaning runs on the window of the decoded pixels (:func:`point_window`: an object
+        before darkness), with the same result as on the whole frame.
         """
         from . import kernels
 
@@ -370,7 +374,27 @@ class Scanner:
             from .triangulate import point_sigma_mm
 
             sigma = point_sigma_mm(self.triangulator, column, column_sigma, xyz=xyz)
-        if clean:
+        win = point_window(decoded, self.clean_params) if clean else None
+        if clean and win is not None:
+            # the filters on the window of the decoded pixels (every pixel outside is out of play):
+            # the same result, without the passes over the rest of the frame
+            y0, y1, x0, x1 = win
+            sl = (slice(y0, y1), slice(x0, x1))
+            cp = self.clean_params
+            if cp.min_cluster_px is None:   # the frame's default, not the window's
+                cp = dataclasses.replace(cp, min_cluster_px=(H * W) // 1000)
+            xyz_w = np.ascontiguousarray(xyz[sl])
+            res = _clean(xyz_w, np.ascontiguousarray(conf[sl]) if confidence is not None else None, cp,
+                         np.ascontiguousarray(reason[sl]), None if sigma is None else np.ascontiguousarray(sigma[sl]))
+            counts.update({k: v for k, v in res.counts.items() if k != "input"})
+            t2 = time.perf_counter()
+            kernels.mask_rejected(res.reason, xyz_w, res.normals)  # NaN wherever there is no point
+            reason[sl] = res.reason
+            xyz[sl] = xyz_w
+            normals = np.full((H, W, 3), np.nan, np.float32)
+            normals[sl] = res.normals
+            t3 = time.perf_counter()
+        elif clean:
             res = _clean(xyz, conf if confidence is not None else None, self.clean_params, reason, sigma)
             reason, normals = res.reason, res.normals  # normals: computed before the grazing filter
             counts.update({k: v for k, v in res.counts.items() if k != "input"})
@@ -380,9 +404,10 @@ class Scanner:
             counts["kept"] = int(np.count_nonzero(reason == 0))
             normals = np.empty((H, W, 3), np.float32)
             kernels.grid_normals_into(xyz, reason, int(self.clean_params.normal_step_px), normals, -np.inf, 0)
-        t2 = time.perf_counter()
-        kernels.mask_rejected(reason, xyz, normals)  # NaN wherever there is no point
-        t3 = time.perf_counter()
+        if win is None:
+            t2 = time.perf_counter()
+            kernels.mask_rejected(reason, xyz, normals)  # NaN wherever there is no point
+            t3 = time.perf_counter()
         timings = {"triangulate": (t1 - t0) * 1e3, "clean": (t2 - t1) * 1e3, "normals": (t3 - t2) * 1e3,
                    "total": (t3 - t0) * 1e3}
         s = Scan(xyz, normals, conf, reason, counts, timings, column_sigma=column_sigma)
@@ -421,3 +446,28 @@ def stripe_range_from_pencil(triangulator, stripe_px: float, near_mm: float, far
 
 def _clean(xyz, confidence, params, reason, sigma_mm=None):
     return clean(xyz, confidence, params, reason=reason, sigma_mm=sigma_mm)
+
+
+#: a window of the decoded pixels over this fraction of the frame is not used by the cleaning
+POINT_WINDOW_MAX_FRACTION = 0.6
+
+
+def point_window(decoded: np.ndarray, params: CleanParams) -> tuple[int, int, int, int] | None:
+    """The window (y0, y1, x0, x1), half-open, that :meth:`Scanner.reconstruct` runs the cleaning
+    on: the bounding box of the ``decoded`` (H, W) pixels grown by twice the filters' reach along
+    a row or column (``max_gap_px`` and the run ends it trims, ``normal_step_px``; the rest look at
+    4-neighbours), at least 8 px.  Pixels outside it are out of play, so the filters give the
+    whole frame's result there (the components' default size is the frame's, not the window's).
+    None: nothing decoded or a window over ``POINT_WINDOW_MAX_FRACTION`` of the frame."""
+    H, W = decoded.shape
+    rows = np.flatnonzero(decoded.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(decoded[rows[0]:rows[-1] + 1].any(axis=0))
+    m = 2 * (int(params.max_gap_px) + max(int(params.gap_far_px), int(params.gap_near_px)) +
+             int(params.normal_step_px)) + 8
+    y0, y1 = max(0, int(rows[0]) - m), min(H, int(rows[-1]) + 1 + m)
+    x0, x1 = max(0, int(cols[0]) - m), min(W, int(cols[-1]) + 1 + m)
+    if (y1 - y0) * (x1 - x0) > POINT_WINDOW_MAX_FRACTION * H * W:
+        return None
+    return y0, y1, x0, x1

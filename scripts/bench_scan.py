@@ -8,7 +8,9 @@ mesh, the writers, and the whole ``gbscan scan`` command as a user runs it.
 Frames come from the simulated rig (typical preset) with its exact calibration; the 1280x1024
 camera has the same horizontal field of view as the paper's 640x480 one.  Prints the median
 milliseconds per stage per frame size ("triangulate" is the scanner's frame kernel,
-"triangulate ref" the float64 reference :func:`gbscan.triangulate.triangulate`; the write stages
+"triangulate ref" the float64 reference :func:`gbscan.triangulate.triangulate`; "clean" and
+"normals" the public functions on the whole frame, "clean in scan()" the cleaning as the scanner
+runs it, on the decoded pixels' window when that is small; the write stages
 include the fsync of the atomic write), then the wall time of the command in a fresh process
 (Python start-up and imports included), without and with --mesh (.ply, .obj, .stl).  Numbers
 depend on the machine and on its load: run it on a quiet machine (``uptime`` load < 1.5).
@@ -96,6 +98,10 @@ def bench_size(width: int, height: int, scene: str, repeats: int, workdir: Path,
         "mesh": median_ms(lambda: grid_mesh(scan.xyz, scan.valid, normals=scan.normals_map), repeats),
         "scan()": median_ms(lambda: scanner.scan(r.image), repeats),
     }
+    # the cleaning as scan() runs it: on the decoded pixels' window when that is small (an object
+    # before darkness), with the masking of the rejected points (the rows above: the whole frame)
+    tim = [scanner.scan(r.image).timings_ms for _ in range(repeats)]
+    out["clean in scan()"] = statistics.median(t["clean"] + t["normals"] for t in tim)
     out["scan()+mesh"] = out["scan()"] + out["mesh"]
     out["write cloud"] = median_ms(lambda: scan.save_ply(workdir / "cloud_b.ply"), repeats)
     for suffix in ("ply", "obj", "stl"):
@@ -136,7 +142,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for w, h in sizes:
             rows[f"{w}x{h}"] = bench_size(w, h, args.scene, args.repeats, Path(tmp), command=not args.no_command)
-    keys = ["points", "triangles", "setup (rays)", "decode", "triangulate", "triangulate ref", "clean", "normals",
+    keys = ["points", "triangles", "setup (rays)", "decode", "triangulate", "triangulate ref", "clean", "normals", "clean in scan()",
             "mesh", "scan()", "scan()+mesh", "write cloud", "write .ply", "write .obj", "write .stl", "command",
             "command --mesh .ply", "command --mesh .obj", "command --mesh .stl"]
     print(f"median ms per frame, scene '{args.scene}', typical preset ({args.repeats} repeats), "

@@ -823,3 +823,74 @@ def test_sigma_mm_needs_a_column_error(tmp_path, scanner, scene, rig):
                    clean_params=CleanParams(max_sigma_mm=0.5)).scan(r.image, clean=False).n_points > 0
     with pytest.raises(GBError, match="max_sigma_mm"):
         CleanParams(max_sigma_mm=0.0)
+
+
+# -- the cleaning on the window of the decoded pixels ---------------------------------------------
+def _reconstruct_both(monkeypatch, scanner, column, **kw):
+    """reconstruct() with the cleaning on the decoded pixels' window, then on the whole frame."""
+    import gbscan.scan as scan_module
+
+    out = []
+    for frac in (scan_module.POINT_WINDOW_MAX_FRACTION, -1.0):
+        monkeypatch.setattr(scan_module, "POINT_WINDOW_MAX_FRACTION", frac)
+        out.append(scanner.reconstruct(column, **kw))
+    return out
+
+
+def _assert_same_scan(a, b):
+    for name in ("xyz", "normals", "confidence", "reason"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.shape == y.shape and np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), name
+    assert a.counts == b.counts
+
+
+def test_point_window_is_the_decoded_box_grown_by_the_filters_reach():
+    from gbscan.clean import CleanParams
+    from gbscan.scan import point_window
+
+    p = CleanParams()
+    m = 2 * (p.max_gap_px + max(p.gap_far_px, p.gap_near_px) + p.normal_step_px) + 8
+    d = np.zeros((480, 640), bool)
+    assert point_window(d, p) is None                          # nothing decoded
+    d[200:230, 300:350] = True
+    d[250, 320] = True
+    assert point_window(d, p) == (200 - m, 251 + m, 300 - m, 350 + m)
+    d[0, 639] = True                                           # clipped at the frame's edges
+    assert point_window(d, p) == (0, 251 + m, 300 - m, 640)
+    d[470, 5] = True                                           # most of the frame: not worth it
+    assert point_window(d, p) is None
+
+
+def test_cleaning_on_the_decoded_window_is_the_whole_frames(monkeypatch, scanner, rig):
+    """Points decoded in one part of the frame: the cleaning on their window gives the whole
+    frame's points, normals, reasons and counts, bit for bit -- a small component is measured
+    against the frame's default size (307 px at 640x480), not the window's."""
+    import gbscan.scan as scan_module
+
+    p, col, _ = truth(rig, spheres=[SPHERE])                 # a sphere alone: columns on its pixels
+    col = np.where(np.isfinite(col), col, np.nan).astype(np.float32)
+    rng = np.random.default_rng(3)
+    conf = rng.uniform(0.1, 1.0, col.shape).astype(np.float32)
+    ys, xs = np.nonzero(np.isfinite(col))
+    blob = (slice(ys[0] - 20, ys[0] - 8), slice(xs[0] - 6, xs[0] + 6))   # 144 px above it
+    col[blob] = col[ys[0], xs[0]]
+    noisy = col + rng.normal(0, 0.05, col.shape).astype(np.float32)
+    noisy[rng.random(col.shape) < 0.01] += 30.0                # spikes for the outlier filter
+    assert scan_module.point_window(np.isfinite(noisy), scanner.clean_params) is not None
+    a, b = _reconstruct_both(monkeypatch, scanner, noisy, confidence=conf)
+    _assert_same_scan(a, b)
+    assert a.counts["small_cluster"] >= 144 and a.counts["outlier"] > 0 and a.counts["kept"] > 5000
+    assert np.isnan(a.xyz[blob]).all()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["head", "sphere"])
+def test_scan_of_an_object_before_darkness_cleans_its_window_identically(monkeypatch, name):
+    from gbscan import sim
+
+    r, _ = sim_scan(name)
+    sc = Scanner(calibration_from_rig(sim.paper_rig(), PatternSpec()))
+    sm = sc.scan(r.image).stripemap
+    a, b = _reconstruct_both(monkeypatch, sc, sm.column, confidence=sm.confidence, decoded=sm.valid)
+    _assert_same_scan(a, b)
+    assert a.counts["kept"] > 10000
