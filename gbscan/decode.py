@@ -322,8 +322,9 @@ class DecodeParams:
         reach and ``CROP_REACH_PX``.  Every pixel outside it is dark for the classifier, so the
         result is the same as the whole frame's, bit for bit; the window just skips the passes
         over darkness (an object before a black or distant background: a face, a sphere).  A
-        window over ``CROP_MAX_FRACTION`` of the frame is not used.  False: always the whole
-        frame.  Measured (interleaved in one process, 640x480, one thread, 2026-11-27): the
+        window over ``CROP_MAX_FRACTION`` of the frame is not used, nor one on the staged path
+        (``keep_stages``, rotated stripes, a local balance window: :func:`fast_path`).  False:
+        always the whole frame.  Measured (interleaved in one process, 640x480, one thread, 2026-11-27): the
         head's window is 26 % of the frame and decodes 1.7-2.0x faster, the real face's 23 %
         and 1.8x, the sphere's 39 % and 1.4-1.5x; the plane (its light fills the frame) and the
         multi-object scene (a wall behind) are decoded whole as before, the window's test costing

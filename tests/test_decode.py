@@ -2236,6 +2236,11 @@ def test_lit_window_decodes_bit_identically_to_the_whole_frame(scene, preset, kw
 
     assert f"Lit window {x1 - x0}x{y1 - y0} at ({x0}, {y0}) decoded alone" in summary(a)
     assert "Lit window" not in summary(b)
+    import pickle                                    # batch workers send StripeMaps: the lazy maps travel
+
+    c = pickle.loads(pickle.dumps(decode(img, PatternSpec())))
+    for name in ("relative", "region", "labels", "column_relative"):
+        assert np.array_equal(getattr(c, name), getattr(b, name), equal_nan=getattr(b, name).dtype.kind == "f"), name
 
 
 def test_crop_param_is_validated():
