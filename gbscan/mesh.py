@@ -188,9 +188,20 @@ def grid_mesh(xyz: np.ndarray, valid: np.ndarray | None = None, *, max_jump: flo
                 (colors.ndim == 3 and colors.shape[2] != 3):
             raise GBError(f"grid_mesh: colors are {colors.shape} {colors.dtype}, "
                           f"expected uint8 {(H, W, 3)} or {(H, W)}")
-    # one compiled pass: depths, quads, vertex numbering, triangles, vertex normals
+    # one compiled pass: depths, quads, vertex numbering, triangles, vertex normals -- over the
+    # bounding box of the points when it is a small part of the grid (an object before darkness:
+    # the same mesh, its vertices in the same raster order, their pixels moved back)
+    y0, x0 = 0, 0
+    win = _points_window(valid if use_valid else np.isfinite(xyz[..., 2]))
+    if win is not None:
+        y0, y1, x0, x1 = win
+        xyz = np.ascontiguousarray(xyz[y0:y1, x0:x1])
+        valid = np.ascontiguousarray(valid[y0:y1, x0:x1]) if use_valid else valid
+        normals = np.ascontiguousarray(normals[y0:y1, x0:x1]) if use_normals else normals
     verts, tris, pixel, vn, has_normal = gk.grid_mesh_arrays(xyz, valid, use_valid, np.float32(max_jump), normals,
                                                              use_normals)
+    if win is not None:
+        pixel += np.array([y0, x0], pixel.dtype)
     mesh = Mesh(verts, tris, pixel=pixel)
     if colors is not None:
         mesh.colors = _colors_u8(colors[pixel[:, 0], pixel[:, 1]], len(verts), "grid_mesh colors")
@@ -200,6 +211,24 @@ def grid_mesh(xyz: np.ndarray, valid: np.ndarray | None = None, *, max_jump: flo
         gk.area_weighted_normals(verts, tris, ~has_normal, vn)
     mesh.vertex_normals = vn
     return mesh
+
+
+#: a bounding box of the points over this fraction of the grid is not worth cutting out
+MESH_WINDOW_MAX_FRACTION = 0.6
+
+
+def _points_window(present: np.ndarray) -> tuple[int, int, int, int] | None:
+    # (y0, y1, x0, x1) half-open bounding box of the True pixels of an (H, W) bool map, or None
+    # (none, or most of the map)
+    H, W = present.shape
+    rows = np.flatnonzero(present.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(present[rows[0]:rows[-1] + 1].any(axis=0))
+    y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    if (y1 - y0) * (x1 - x0) > MESH_WINDOW_MAX_FRACTION * H * W:
+        return None
+    return y0, y1, x0, x1
 
 
 def remove_unreferenced(mesh: Mesh) -> Mesh:

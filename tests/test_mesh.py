@@ -336,3 +336,29 @@ def test_mesh_colours_follow_the_vertices_to_every_file_and_through_every_step(t
         Mesh(m.vertices, m.triangles, colors=m.colors.astype(np.float32))
     with pytest.raises(GBError, match="grid_mesh: colors"):
         grid_mesh(p, colors=rgb[:-1])
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_grid_mesh_of_an_object_alone_meshes_its_window_the_same(sphere_scene, dtype):
+    """A sphere without its wall (points in a quarter of the grid): the mesh is built on the
+    points' bounding box and its vertices moved back -- the numpy formulation's mesh over the
+    whole grid, array for array, with and without valid / normals, the box at the grid's edge too."""
+    import gbscan.mesh as mesh_module
+
+    p, oid = sphere_scene
+    alone = np.where((oid == 0)[..., None], p, np.nan).astype(dtype)
+    edge = np.full_like(alone, np.nan)                   # the same sphere moved to the grid's corner
+    ys, xs = np.nonzero(oid == 0)
+    edge[:ys.max() + 1 - ys.min(), -(xs.max() + 1 - xs.min()):] = alone[ys.min():ys.max() + 1, xs.min():xs.max() + 1]
+    for xyz in (alone, edge):
+        valid = np.isfinite(xyz[..., 2])
+        valid[np.random.default_rng(1).random(valid.shape) < 0.02] = False
+        nrm = np.where(np.isfinite(xyz), -xyz / np.linalg.norm(xyz, axis=-1, keepdims=True), np.nan).astype(np.float32)
+        win = mesh_module._points_window(np.isfinite(xyz[..., 2]))
+        assert win is not None and (win[1] - win[0]) * (win[3] - win[2]) < 0.3 * valid.size
+        for kw in (dict(), dict(valid=valid), dict(valid=valid, normals=nrm)):
+            m = grid_mesh(xyz, **kw)
+            ref = _grid_mesh_numpy(xyz, **kw)
+            assert m.n_triangles > 1000
+            for got, want in zip((m.vertices, m.triangles, m.pixel, m.normals()), ref):
+                assert got.dtype == want.dtype and np.array_equal(got, want), kw
