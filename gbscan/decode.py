@@ -798,15 +798,14 @@ def _decode_resampled(img, factor: float, stripe_px_frame: float, pattern: Patte
         window = lit_window(img, params, _gauss_half(float(sigma)).size - 1, _threshold_window(params),
                             int(params.norm_window_px) | 1, scale=float(factor))
     if window is not None:
-        y0, y1, x0, x1 = window
-        img = np.ascontiguousarray(img[y0:y1, x0:x1])
-        if stripe_range is not None:
-            stripe_range = np.ascontiguousarray(stripe_range[:, y0:y1, x0:x1])
+        img, stripe_range = _cut(window, img, stripe_range)
     small = shrink_frame(img, factor, params.camera_gamma, red=False)
     h, w = small.shape[:2]
     sr = None if stripe_range is None else _shrink_range(stripe_range, h, w)
     t1 = time.perf_counter()
-    sm = decode(small, pattern, dataclasses.replace(params, resample=1.0), keep_stages=keep_stages, stripe_range=sr)
+    # (a window cut out already: the shrunk decode need not look for one again, the same result)
+    sm = decode(small, pattern, dataclasses.replace(params, resample=1.0, crop=params.crop and window is None),
+                keep_stages=keep_stages, stripe_range=sr)
     t2 = time.perf_counter()
     H, W = img.shape[:2]
     column, stripe, conf, mask, counts = kernels.upsample_stripes(
@@ -821,15 +820,13 @@ def _decode_resampled(img, factor: float, stripe_px_frame: float, pattern: Patte
         later = _Deferred(args)
         sigma = None if sargs is None else _Deferred(sargs, "_expand_sigma")
     else:
-        counts[DARK] += shape[0] * shape[1] - H * W
-        column, stripe = _paste(window, shape, np.nan, column), _paste(window, shape, -1, stripe)
-        conf, mask = _paste(window, shape, 0, conf), _paste(window, shape, DARK, mask)
+        column, stripe, conf, mask = _paste_scan_maps(window, shape, column, stripe, conf, mask, counts)
         later = _Deferred((window, shape, "_expand_maps", args), "_paste_expanded")
         sigma = None if sargs is None else _Deferred((window, shape, "_expand_sigma", sargs), "_paste_expanded")
     t3 = time.perf_counter()
     stats = dict(sm.stats)
     stats.update(_reason_stats(counts[:len(REASONS)]))
-    stats["decoded_window"] = list(window) if window is not None else [0, shape[0], 0, shape[1]]
+    stats["decoded_window"] = _window_stat(window, shape)
     ms = dict(stats.get("ms", {}))
     ms.update(resample=round((t1 - t0) * 1e3, 3), upsample=round((t3 - t2) * 1e3, 3),
               total=round((t3 - t0) * 1e3, 3))
@@ -1568,8 +1565,31 @@ def _paste(window: tuple, shape: tuple, fill, a: np.ndarray) -> np.ndarray:
     return out
 
 
-#: what the whole frame's decode gives a dark pixel in the maps a scan does not read
-_DARK_FILL = {"relative": 0, "region": -1, "labels": 0, "column_relative": np.nan, "column_sigma": np.nan}
+#: what the whole frame's decode gives a dark pixel, map by map
+_DARK_FILL = {"column": np.nan, "stripe": -1, "confidence": 0, "mask": DARK, "relative": 0, "region": -1,
+              "labels": 0, "column_relative": np.nan, "column_sigma": np.nan}
+
+
+def _cut(window: tuple, img: np.ndarray, stripe_range: np.ndarray | None) -> tuple:
+    # the frame and the working volume's stripe bounds (2, H, W) or None, cut to a window
+    y0, y1, x0, x1 = window
+    img = np.ascontiguousarray(img[y0:y1, x0:x1])
+    if stripe_range is not None:
+        stripe_range = np.ascontiguousarray(stripe_range[:, y0:y1, x0:x1])
+    return img, stripe_range
+
+
+def _paste_scan_maps(window: tuple, shape: tuple, column, stripe, conf, mask, counts: np.ndarray) -> tuple:
+    # the four maps a scan reads, from a window back to the frame's pixels; the pixels outside it
+    # counted dark in ``counts`` (the reason histogram), in place
+    counts[DARK] += shape[0] * shape[1] - mask.size
+    return tuple(_paste(window, shape, _DARK_FILL[k], a)
+                 for k, a in (("column", column), ("stripe", stripe), ("confidence", conf), ("mask", mask)))
+
+
+def _window_stat(window: tuple | None, shape: tuple) -> list:
+    # stats["decoded_window"]: the window, or the whole frame
+    return list(window) if window is not None else [0, shape[0], 0, shape[1]]
 
 
 def _paste_maps(window: tuple, shape: tuple, relative, region, labels, column_rel) -> dict:
@@ -1719,11 +1739,8 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
             # dark); the colour balance and the blur's SNR above are the whole frame's
             window = lit_window(img, params, kh.size - 1, thr_w, norm_w)
         if window is not None:
-            y0, y1, x0, x1 = window
-            img = np.ascontiguousarray(img[y0:y1, x0:x1])
+            img, stripe_range = _cut(window, img, stripe_range)
             H, W = img.shape[:2]
-            if stripe_range is not None:
-                stripe_range = np.ascontiguousarray(stripe_range[:, y0:y1, x0:x1])
         gn, bn, contrast, reason = ws.views(H, W)
         labels = np.empty((H, W), np.uint8)
         top = kernels.stream_frame(img, lut, kh, sg, sb, thr_w, norm_w, *_stage3_args(params),
@@ -1751,7 +1768,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     t3 = time.perf_counter()
     ms["classify"] = (t3 - t2) * 1e3
     if not cls.labels.any():
-        reason = cls.reason if window is None else _paste(window, shape, DARK, cls.reason)
+        reason = cls.reason if window is None else _paste(window, shape, _DARK_FILL["mask"], cls.reason)
         why = ("image is saturated" if (reason == SATURATED).mean() > 0.5 else
                "no stripes found: no pixel shows green/blue modulation (uniform colour, out of focus, or no pattern)")
         sm = empty_stripemap(shape, pattern, LOW_CONTRAST, why, {"ms": ms})
@@ -1885,11 +1902,9 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     rest = None
     if window is not None:
         # back to the frame's pixels; the maps a scan does not read when first read
-        counts[DARK] += shape[0] * shape[1] - H * W
-        column, stripe = _paste(window, shape, np.nan, column), _paste(window, shape, -1, stripe)
-        conf, mask = _paste(window, shape, 0, conf), _paste(window, shape, DARK, mask)
+        column, stripe, conf, mask = _paste_scan_maps(window, shape, column, stripe, conf, mask, counts)
         if sigma is not None:
-            sigma = _paste(window, shape, np.nan, sigma)
+            sigma = _paste(window, shape, _DARK_FILL["column_sigma"], sigma)
         rest = _Deferred((window, shape, un.relative, region, cls.labels, column_rel), "_paste_maps")
     t7 = time.perf_counter()
     ms["finish"] = (t7 - t6) * 1e3
@@ -1905,7 +1920,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     # of the "rim" pixels: masked by the guard rows (rim_guard) and by the brightness-step guard
     stats["rim_guard_px"], stats["rim_step_px"] = int(n_guard), int(n_step)
     stats["transitions_joined"] = int(joined.size)
-    stats["decoded_window"] = list(window) if window is not None else [0, shape[0], 0, shape[1]]
+    stats["decoded_window"] = _window_stat(window, shape)
     stats["ms"] = {k: round(v, 3) for k, v in ms.items()}
     stats["blur_sigma_along_px"] = float(params.blur_sigma_along_px)
     if math.isfinite(frame_px):

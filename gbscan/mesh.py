@@ -192,7 +192,7 @@ def grid_mesh(xyz: np.ndarray, valid: np.ndarray | None = None, *, max_jump: flo
     # bounding box of the points when it is a small part of the grid (an object before darkness:
     # the same mesh, its vertices in the same raster order, their pixels moved back)
     y0, x0 = 0, 0
-    win = _points_window(valid if use_valid else np.isfinite(xyz[..., 2]))
+    win = grid_window(valid if use_valid else np.isfinite(xyz[..., 2]), 0, MESH_WINDOW_MAX_FRACTION)
     if win is not None:
         y0, y1, x0, x1 = win
         xyz = np.ascontiguousarray(xyz[y0:y1, x0:x1])
@@ -217,16 +217,20 @@ def grid_mesh(xyz: np.ndarray, valid: np.ndarray | None = None, *, max_jump: flo
 MESH_WINDOW_MAX_FRACTION = 0.6
 
 
-def _points_window(present: np.ndarray) -> tuple[int, int, int, int] | None:
-    # (y0, y1, x0, x1) half-open bounding box of the True pixels of an (H, W) bool map, or None
-    # (none, or most of the map)
+def grid_window(present: np.ndarray, margin_px: int, max_fraction: float) -> tuple[int, int, int, int] | None:
+    """(y0, y1, x0, x1), half-open: the bounding box of the True pixels of an (H, W) bool map grown
+    by ``margin_px`` on each side (clipped to the map), for the organised-grid passes that can skip
+    the rest (this module's :func:`grid_mesh`; the scan's cleaning, :func:`gbscan.scan.point_window`).
+    None: no True pixel, or a box over ``max_fraction`` of the map (not worth cutting out)."""
     H, W = present.shape
     rows = np.flatnonzero(present.any(axis=1))
     if rows.size == 0:
         return None
     cols = np.flatnonzero(present[rows[0]:rows[-1] + 1].any(axis=0))
-    y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
-    if (y1 - y0) * (x1 - x0) > MESH_WINDOW_MAX_FRACTION * H * W:
+    m = int(margin_px)
+    y0, y1 = max(0, int(rows[0]) - m), min(H, int(rows[-1]) + 1 + m)
+    x0, x1 = max(0, int(cols[0]) - m), min(W, int(cols[-1]) + 1 + m)
+    if (y1 - y0) * (x1 - x0) > max_fraction * H * W:
         return None
     return y0, y1, x0, x1
 

@@ -459,15 +459,8 @@ def point_window(decoded: np.ndarray, params: CleanParams) -> tuple[int, int, in
     4-neighbours), at least 8 px.  Pixels outside it are out of play, so the filters give the
     whole frame's result there (the components' default size is the frame's, not the window's).
     None: nothing decoded or a window over ``POINT_WINDOW_MAX_FRACTION`` of the frame."""
-    H, W = decoded.shape
-    rows = np.flatnonzero(decoded.any(axis=1))
-    if rows.size == 0:
-        return None
-    cols = np.flatnonzero(decoded[rows[0]:rows[-1] + 1].any(axis=0))
+    from .mesh import grid_window
+
     m = 2 * (int(params.max_gap_px) + max(int(params.gap_far_px), int(params.gap_near_px)) +
              int(params.normal_step_px)) + 8
-    y0, y1 = max(0, int(rows[0]) - m), min(H, int(rows[-1]) + 1 + m)
-    x0, x1 = max(0, int(cols[0]) - m), min(W, int(cols[-1]) + 1 + m)
-    if (y1 - y0) * (x1 - x0) > POINT_WINDOW_MAX_FRACTION * H * W:
-        return None
-    return y0, y1, x0, x1
+    return grid_window(decoded, m, POINT_WINDOW_MAX_FRACTION)

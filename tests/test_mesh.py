@@ -354,7 +354,7 @@ def test_grid_mesh_of_an_object_alone_meshes_its_window_the_same(sphere_scene, d
         valid = np.isfinite(xyz[..., 2])
         valid[np.random.default_rng(1).random(valid.shape) < 0.02] = False
         nrm = np.where(np.isfinite(xyz), -xyz / np.linalg.norm(xyz, axis=-1, keepdims=True), np.nan).astype(np.float32)
-        win = mesh_module._points_window(np.isfinite(xyz[..., 2]))
+        win = mesh_module.grid_window(np.isfinite(xyz[..., 2]), 0, mesh_module.MESH_WINDOW_MAX_FRACTION)
         assert win is not None and (win[1] - win[0]) * (win[3] - win[2]) < 0.3 * valid.size
         for kw in (dict(), dict(valid=valid), dict(valid=valid, normals=nrm)):
             m = grid_mesh(xyz, **kw)
