@@ -1632,8 +1632,8 @@ def _retry_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1=
     """Unwrap again with the rows of failed regions also cut at weaker spacing jumps
     (``UnwrapParams.retry_spacing_ratio``), when regions of at least ``retry_min_px`` pixels
     failed with markers that contradict each other (``segments1``: step 1's segments of the
-    first unwrap, reused).  Returns the new (Unwrapped, RegionIndex) when it indexes more
-    pixels, else None."""
+    first unwrap, reused).  Returns the new (Unwrapped, RegionIndex, retry_px) when it indexes
+    more pixels, else None."""
     from . import unwrap as uw
 
     p = params.unwrap
@@ -1654,6 +1654,40 @@ def _retry_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1=
     if after <= before:
         return None
     un2.stats["weld_retry_px"] = after - before
+    return un2, idx2, retry_px
+
+
+def _split_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1=None, retry_px=None):
+    """Unwrap again with the vertical links cut at the contact row of every region of at least
+    ``retry_min_px`` pixels whose markers do not fit the pattern but fit two offsets above and
+    below one row (:func:`gbscan.unwrap.split_row`, ``UnwrapParams.split_rows``); ``retry_px``:
+    the cuts of an accepted :func:`_retry_welds`, kept.  Returns the new (Unwrapped, RegionIndex)
+    when it indexes more pixels, else None."""
+    from . import unwrap as uw
+
+    p = params.unwrap
+    if p.split_rows <= 0 or not pattern.markers or not len(idx.why):
+        return None
+    sever = None
+    for k in range(len(idx.why)):
+        if idx.indexed[k] or idx.why[k] != uw.MISFIT or un.region_px[k] < p.retry_min_px:
+            continue
+        v = uw.split_row(cls.labels, un.relative, un.region, k, pattern, p)
+        if v is None:
+            continue
+        if sever is None:
+            sever = np.zeros(un.region.shape, bool)
+        sever[v + 1] |= un.region[v + 1] == k
+    if sever is None:
+        return None
+    un2 = uw.unwrap(cls.labels, p, locate=locate, retry_px=retry_px, segments1=segments1, sever_px=sever)
+    idx2 = uw.index_regions(cls.labels, un2.relative, un2.region, int(un2.region_px.size), pattern, p, stripe_range)
+    before = int(un.region_px[idx.indexed].sum())
+    after = int(un2.region_px[idx2.indexed].sum())
+    if after <= before:
+        return None
+    un2.stats["weld_retry_px"] = int(un.stats.get("weld_retry_px", 0))
+    un2.stats["weld_split_px"] = after - before
     return un2, idx2
 
 
@@ -1792,10 +1826,15 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     ms["unwrap"] = (t4 - t3) * 1e3
     n_reg = int(un.region_px.size)
     idx = uw.index_regions(cls.labels, un.relative, un.region, n_reg, pattern, params.unwrap, stripe_range)
-    retry = _retry_welds(cls, un, idx, pattern, params, stripe_range, locate, located.get("segs"))
+    segments1 = located.get("segs")
+    retry = _retry_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1)
+    retry_px = None
     if retry is not None:
-        un, idx = retry
-        n_reg = int(un.region_px.size)
+        un, idx, retry_px = retry
+    split = _split_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1, retry_px)
+    if split is not None:
+        un, idx = split
+    n_reg = int(un.region_px.size)
     # stretches of rows whose own markers contradict their region's offset (a surface welded in
     # across a depth edge): reported as unindexed.  finish_pixels keeps any non-zero input reason.
     _mark_spans(cls.reason, uw.marker_conflicts(cls.labels, un, idx, pattern, params.unwrap, cls.gn, cls.bn),
@@ -1917,6 +1956,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     stats["region_why"] = dict(sorted(collections.Counter(str(w) for w in idx.why).items())) if n_reg else {}
     stats["boundaries"] = int(np.isfinite(jx).sum())
     stats["weld_retry_px"] = int(un.stats.get("weld_retry_px", 0))
+    stats["weld_split_px"] = int(un.stats.get("weld_split_px", 0))
     # of the "rim" pixels: masked by the guard rows (rim_guard) and by the brightness-step guard
     stats["rim_guard_px"], stats["rim_step_px"] = int(n_guard), int(n_step)
     stats["transitions_joined"] = int(joined.size)

@@ -227,6 +227,18 @@ class UnwrapParams:
         inside such regions only, and keeps that result when it indexes more pixels (0: no
         retry).  Lowering ``spacing_ratio`` itself to 1.3 everywhere cuts good surfaces too:
         ``scripts/sweep_decode.py`` 83.26 -> 82.75 % reported, wrong pixels off depth edges 13 -> 25.
+    split_rows : a region of at least ``retry_min_px`` pixels whose markers do not fit the pattern
+        may be two surfaces welded along a horizontal contact where their stripes line up (an
+        even number of stripes apart): the rows above the contact fit one offset, the rows below
+        another.  :func:`split_row` looks for the row where the region's markers split into two
+        parts of at least ``split_rows`` rows, each indexed by its own markers (every test of
+        :func:`index_regions`) at different offsets; the decoder then unwraps again with the
+        vertical links across that row pair cut inside the region (``unwrap(sever_px=)``) and
+        keeps the result when it indexes more pixels (0: never split); the parts are then
+        indexed, and their rows checked against their markers, like any region.  Found at
+        2560x1920 (``scripts/resample_study.py``, the multi-object scene shrunk by 4): a region
+        of 46 381 shrunk px whose rows 150-293 fit offset 24 and rows 294-425 offset 48 was
+        dropped whole (47.1 % of the scene reported; 82.7 % split, none wrong off depth edges).
     """
 
     n_ref_pixels: int = 4
@@ -270,6 +282,7 @@ class UnwrapParams:
     volume_frac: float = 0.5
     retry_spacing_ratio: float = 1.2
     retry_min_px: int = 1000
+    split_rows: int = 3
 
     def __post_init__(self):
         for name in ("n_ref_pixels", "n_ref_rows", "min_region_px", "min_markers", "conflict_run_px",
@@ -304,6 +317,8 @@ class UnwrapParams:
                           f"{self.retry_spacing_ratio}")
         if int(self.retry_min_px) < 1:
             raise GBError(f"UnwrapParams.retry_min_px must be >= 1, got {self.retry_min_px}")
+        if int(self.split_rows) < 0:
+            raise GBError(f"UnwrapParams.split_rows must be >= 0 (0: never split a region), got {self.split_rows}")
         if not (float(self.bridge_ratio) == 0.0 or float(self.bridge_ratio) > 1.0):
             raise GBError(f"UnwrapParams.bridge_ratio must be > 1 (a spacing factor) or 0 (disabled), got "
                           f"{self.bridge_ratio}")
@@ -667,8 +682,22 @@ def check_pixels(labels: np.ndarray, relative: np.ndarray, region: np.ndarray) -
 
 
 # -- the seven steps together -------------------------------------------------------------------
+def _sever(edges: Edges, segs: Segments, sever_px: np.ndarray | None) -> Edges:
+    """``edges`` without those whose lower segment has a pixel in ``sever_px`` (H, W) bool."""
+    if sever_px is None or edges.s.size == 0:
+        return edges
+    hit = np.zeros(segs.n + 1, bool)
+    hit[segs.seg[sever_px]] = True          # (no segment: -1 -> the last entry)
+    keep = ~hit[edges.s]
+    if keep.all():
+        return edges
+    return Edges(*(None if a is None else a[keep] for a in (edges.s, edges.t, edges.offset, edges.n_agree,
+                                                             edges.n_same, edges.n_overlap, edges.len_min)))
+
+
 def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=None,
-           retry_px: np.ndarray | None = None, segments1: Segments | None = None) -> Unwrapped:
+           retry_px: np.ndarray | None = None, segments1: Segments | None = None,
+           sever_px: np.ndarray | None = None) -> Unwrapped:
     """The paper's seven steps on a colour-class image ``labels`` (H, W) uint8 -> :class:`Unwrapped`.
 
     ``locate`` (optional): a function ``Segments -> (n_junctions,) float32`` sub-pixel boundary
@@ -679,6 +708,9 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
     whose left pixel is in it (the decoder's retry of welded regions, see :class:`UnwrapParams`).
     ``segments1`` (optional): step 1's segments of these same labels and parameters from an
     earlier call (the retry), reused instead of recomputed; they are not modified.
+    ``sever_px`` (optional, (H, W) bool): a segment with a pixel in it is never related to the row
+    above (its step-2 edges upwards are dropped): the decoder's split of a welded region at a
+    contact row (:func:`split_row`).
     """
     labels = np.asarray(labels)
     if labels.ndim != 2 or labels.dtype != np.uint8:
@@ -705,10 +737,14 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
             segs1 = _apply_cuts(segs1, cut)
     else:
         n_depth_cuts = n_unlocated_cuts = 0
-    edges1 = relate_rows(labels, segs1)                                   # 2
+    if sever_px is not None:
+        sever_px = np.asarray(sever_px, bool)
+        if sever_px.shape != labels.shape:
+            raise GBError(f"unwrap: sever_px must be a {labels.shape} bool array, got {sever_px.shape}")
+    edges1 = _sever(relate_rows(labels, segs1), segs1, sever_px)          # 2
     bel1 = believable_segments(segs1, edges1, p)                          # 3
     segs = split_doubtful(labels, segs1, bel1, p)                         # 5 (pieces)
-    edges = relate_rows(labels, segs) if segs is not segs1 else edges1
+    edges = _sever(relate_rows(labels, segs), segs, sever_px) if segs is not segs1 else edges1
     bel = believable_segments(segs, edges, p) if segs is not segs1 else bel1
     state = link_believable(segs, edges, bel, p)                          # 4
     attach_doubtful(segs, edges, bel, state, p)                           # 6
@@ -784,13 +820,16 @@ class RegionIndex:
 _SCORE_COMPILED = True
 
 
-def _margin_px(params: UnwrapParams, evidence, seen) -> float:
+def _margin_px(params: UnwrapParams, evidence, seen):
     """Pixels by which the runner-up offset must mismatch more than the best: ``index_margin`` of
-    the evidence, or ``index_margin_events`` marker events (evidence / (2 seen) px each) when less."""
-    m = params.index_margin * float(evidence)
-    if params.index_margin_events > 0 and seen > 0:
-        m = min(m, params.index_margin_events * float(evidence) / (2.0 * float(seen)))
-    return m
+    the evidence, or ``index_margin_events`` marker events (evidence / (2 seen) px each) when less.
+    Scalars give a float; arrays (one entry per region) an array."""
+    ev, seen = np.broadcast_arrays(np.asarray(evidence, dtype=np.float64), np.asarray(seen))
+    m = params.index_margin * ev
+    if params.index_margin_events > 0:
+        by_events = params.index_margin_events * ev / (2.0 * np.maximum(seen, 1))
+        m = np.where(seen > 0, np.minimum(m, by_events), m)
+    return float(m) if m.ndim == 0 else m
 
 
 #: RegionIndex.why of a region whose best offset puts it outside the working volume
@@ -825,6 +864,7 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
     The marker code repeats its gaps, so a region seeing 2-3 markers often has a runner-up 30-50
     stripes away -- over half a metre deeper at the paper's rig -- that the working volume excludes.
     """
+    _same_maps("index_regions", labels=labels, relative=relative, region=region)
     n_st = pattern.n_stripes
     is_marker = np.zeros(n_st, bool)
     is_marker[pattern.marker_indices()] = True
@@ -980,6 +1020,73 @@ def marker_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, patter
                                           int(params.conflict_events),
                                           float(params.conflict_clean_level) if clean else 0.0,
                                           bool(params.conflict_confirm))
+
+
+def _same_maps(where: str, **maps) -> None:
+    """GBError unless the (H, W) maps given by name are 2-D arrays of one shape (the compiled
+    passes read every pixel of the first map's shape in the others)."""
+    shapes = {k: np.shape(v) for k, v in maps.items()}
+    first = next(iter(shapes.values()))
+    if len(first) != 2 or any(s != first for s in shapes.values()):
+        raise GBError(f"{where}: " + ", ".join(f"{k}" for k in shapes) + " must be 2-D arrays of one shape, got "
+                      + ", ".join(f"{k} {s}" for k, s in shapes.items()))
+
+
+def split_row(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, k: int, pattern: PatternSpec,
+              params: UnwrapParams = UnwrapParams()) -> int | None:
+    """The row at which region ``k``'s markers say it is two surfaces, one above the other.
+
+    ``labels`` (H, W) uint8 colour classes, ``relative`` (H, W) int32 and ``region`` (H, W) int32
+    from :func:`unwrap`.  For every row ``v`` leaving at least ``params.split_rows`` of the
+    region's rows on each side, the rows up to ``v`` and the rows below it are scored apart by
+    the marker matched filter of :func:`index_regions` (no working-volume prior).  Returns the
+    last row of the upper part for the ``v`` where both parts pass every test of the indexing
+    (markers seen, mismatch, margin) at *different* offsets, with the fewest mismatching pixels
+    in all (the first such row on a tie); None when there is none (one surface whose markers
+    simply do not fit, or a weld that no single row separates).
+    """
+    from . import kernels
+    from .pattern import BLUE, CYAN, GREEN
+
+    _same_maps("split_row", labels=labels, relative=relative, region=region)
+    n = int(params.split_rows)
+    if n <= 0 or not pattern.markers:
+        return None
+    ys, xs = np.nonzero(np.asarray(region) == k)
+    if ys.size == 0:
+        return None
+    v0 = int(ys.min())
+    R = int(ys.max()) - v0 + 1
+    if R < 2 * n:
+        return None
+    r = np.asarray(relative)[ys, xs].astype(np.int64)
+    r0 = int(r.min())
+    S = int(r.max()) - r0 + 1
+    lab = np.asarray(labels)[ys, xs]
+    cell = (ys - v0).astype(np.int64) * S + (r - r0)
+    hc = np.cumsum(np.bincount(cell[lab == CYAN], minlength=R * S).reshape(R, S), axis=0)
+    hg = np.cumsum(np.bincount(cell[(lab == GREEN) | (lab == BLUE)], minlength=R * S).reshape(R, S), axis=0)
+    cut = np.arange(n - 1, R - n)                 # upper part: rows v0 .. v0 + cut
+    m = cut.size
+    # pseudo-regions 2i (upper part of cut i) and 2i + 1 (lower part), each over the region's span
+    pc = np.empty((2 * m, S), np.int64)
+    pg = np.empty((2 * m, S), np.int64)
+    pc[0::2], pg[0::2] = hc[cut], hg[cut]
+    pc[1::2], pg[1::2] = hc[-1] - hc[cut], hg[-1] - hg[cut]
+    is_marker = np.zeros(pattern.n_stripes, np.bool_)
+    is_marker[pattern.marker_indices()] = True
+    status, seen, offset, evidence, mismatch, runner_up = kernels.score_offsets(
+        np.full(2 * m, r0, np.int64), np.full(2 * m, r0 + S - 1, np.int64), np.arange(2 * m + 1, dtype=np.int64) * S,
+        pc.ravel(), pg.ravel(), is_marker, int(params.min_marker_px), np.zeros(0, np.int64),
+        np.zeros(2 * m + 1, np.int64), np.zeros(2 * m, np.int64), float(params.volume_frac))
+    margin = _margin_px(params, evidence, seen)
+    ok = ((status == 3) & (seen >= params.min_markers) & (mismatch <= params.max_mismatch * evidence)
+          & (runner_up - mismatch >= margin))
+    both = ok[0::2] & ok[1::2] & (offset[0::2] != offset[1::2])
+    if not both.any():
+        return None
+    total = np.where(both, mismatch[0::2] + mismatch[1::2], np.iinfo(np.int64).max)
+    return v0 + int(cut[int(np.argmin(total))])
 
 
 def spans_mask(spans: np.ndarray, shape) -> np.ndarray:

@@ -76,11 +76,12 @@ def test_paper_frames_are_decoded_as_they_are():
 
 
 def test_wide_stripes_are_decoded_shrunk(wide):
-    """Through a camera with twice the paper's pixels the decoder as it is loses a third of the
-    scene (the multi-object scene, seed 0: 67 % reported) and, without the confirmed marker bound
-    of its row check (``UnwrapParams.conflict_confirm``, which now rejects them), put 97 pixels on
-    wrong stripes; shrunk to the validated width it reports most of the scene and none wrong, at
-    every pixel of the frame."""
+    """Through a camera with twice the paper's pixels the decoder as it is loses part of the scene
+    (the multi-object scene, seed 0: 77.1 % reported, 67.1 % before misfit regions were split at
+    a contact row, ``UnwrapParams.split_rows``, against 80.5 % shrunk) and, without the confirmed
+    marker bound of its row check (``UnwrapParams.conflict_confirm``, which now rejects them), put
+    97 pixels on wrong stripes; shrunk to the validated width it reports more of the scene and
+    none wrong, at every pixel of the frame."""
     from gbscan.unwrap import UnwrapParams
 
     auto = decode(wide.image, SPEC)
@@ -91,7 +92,7 @@ def test_wide_stripes_are_decoded_shrunk(wide):
         resample_size(wide.image.shape, auto.stats["resample"]))[::-1]
     cover_auto, wrong_auto = scores(auto, wide)
     cover_never, wrong_never = scores(never, wide)
-    assert wrong_never > 20 and cover_never < 75          # the failure this guards against
+    assert wrong_never > 20 and cover_never < cover_auto - 2          # the failure this guards against
     assert wrong_auto == 0 and cover_auto > 78
     # the outputs agree with each other at every pixel
     v = auto.valid

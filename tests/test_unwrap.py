@@ -1096,3 +1096,107 @@ def test_partial_repaint_and_step7_rows_equal_the_full_passes():
     want = kernels.check_vertical(labels, relative, region)
     assert (want != before).any()   # the moved segments changed flags: the rows had work to do
     np.testing.assert_array_equal(bad, want)
+
+
+def contact_image(spec: PatternSpec, rows_top: int = 20, rows_bottom: int = 20, first: int = 10, shift: int = 24,
+                  n: int = 45, px: int = 3) -> np.ndarray:
+    """Stripes ``first ..`` over ``rows_top`` rows and, below them, another surface whose stripes are
+    ``shift`` (even) further over ``rows_bottom`` rows: green and blue line up at the contact, only
+    the markers differ (a horizontal depth edge at the wrong distance)."""
+    lab = spec.stripe_labels()
+    top = np.repeat(lab[first:first + n], px)
+    bottom = np.repeat(lab[first + shift:first + shift + n], px)
+    return np.ascontiguousarray(np.vstack([np.broadcast_to(top, (rows_top, top.size)),
+                                           np.broadcast_to(bottom, (rows_bottom, bottom.size))]).astype(np.uint8))
+
+
+def welded_maps(lab: np.ndarray):
+    """``relative`` and ``region`` of a label image unwrapped as one region (every pixel; stripes
+    continuing down the columns): what the unwrapping gives where two surfaces weld."""
+    rel = np.cumsum(np.diff(lab, axis=1, prepend=lab[:, :1]) != 0, axis=1).astype(np.int32)
+    return rel, np.zeros(lab.shape, np.int32)
+
+
+@pytest.mark.parametrize("rows_top, rows_bottom", [(20, 20), (25, 12), (4, 30)])
+def test_split_row_finds_a_lined_up_contact(rows_top, rows_bottom):
+    spec = PatternSpec()
+    lab = contact_image(spec, rows_top, rows_bottom)
+    rel, region = welded_maps(lab)
+    idx = uw.index_regions(lab, rel, region, 1, spec)
+    assert not idx.indexed[0] and idx.why[0] == uw.MISFIT      # no one offset fits both surfaces
+    assert uw.split_row(lab, rel, region, 0, spec) == rows_top - 1
+    # each part alone is indexed at its own offset (what the decoder's unwrap again finds)
+    for part in (np.arange(lab.shape[0]) < rows_top, np.arange(lab.shape[0]) >= rows_top):
+        reg = np.where(np.broadcast_to(part[:, None], lab.shape), 0, -1).astype(np.int32)
+        ip = uw.index_regions(lab, rel, reg, 1, spec)
+        assert ip.indexed[0] and ip.offset[0] == (10 if part[0] else 34)
+
+
+def test_unwrap_sever_px_cuts_the_links_to_the_row_above():
+    spec = PatternSpec()
+    lab = stripe_image(spec, 10, 45, rows=40)
+    un = uw.unwrap(lab)
+    assert un.region_px.size == 1
+    sever = np.zeros(lab.shape, bool)
+    sever[20, :60] = True                                      # any pixel of a segment severs it
+    un2 = uw.unwrap(lab, sever_px=sever)
+    assert un2.region_px.size == 2 and set(un2.region_px) == {20 * 135}
+    assert (un2.region[:20] == un2.region[0, 0]).all() and (un2.region[20:] == un2.region[20, 0]).all()
+    idx2 = uw.index_regions(lab, un2.relative, un2.region, 2, spec)
+    assert idx2.indexed.all()
+    assert np.array_equal(un2.relative + idx2.offset[un2.region], un.relative - un.relative[0, 0] + 10)
+    # nothing severed: the same result as without
+    un3 = uw.unwrap(lab, sever_px=np.zeros(lab.shape, bool))
+    assert np.array_equal(un3.region, un.region) and np.array_equal(un3.relative, un.relative)
+
+
+def test_split_row_refuses_what_is_no_contact_of_two_surfaces():
+    spec = PatternSpec()
+    one = stripe_image(spec, 10, 45, rows=40)
+    un = uw.unwrap(one)
+    assert uw.split_row(one, un.relative, un.region, 0, spec) is None        # one offset fits everywhere
+    lab = contact_image(spec, 20, 20)
+    rel, region = welded_maps(lab)
+    assert uw.split_row(lab, rel, region, 0, spec, uw.UnwrapParams(split_rows=0)) is None
+    # a part thinner than split_rows rows is not split off
+    assert uw.split_row(lab, rel, region, 0, spec, uw.UnwrapParams(split_rows=21)) is None
+    assert uw.split_row(lab, rel, region, 0, spec, uw.UnwrapParams(split_rows=20)) == 19
+    # the pure pattern has no markers to tell; a region that is not there
+    assert uw.split_row(lab, rel, region, 0, PatternSpec(markers=False)) is None
+    assert uw.split_row(lab, rel, region, 5, spec) is None
+    # markers that fit no offset in either part (a marker stripe read green in every row): no split
+    bad = lab.copy()
+    bad[:, 3 * (37 - 10):3 * (38 - 10)] = G
+    bad[:, 3 * (41 - 10):3 * (42 - 10)] = G
+    bad[20:, 3 * (37 - 34):3 * (38 - 34)] = G
+    assert uw.split_row(bad, rel, region, 0, spec) is None
+
+
+def test_split_rows_and_sever_px_are_validated():
+    with pytest.raises(GBError, match="split_rows"):
+        uw.UnwrapParams(split_rows=-1)
+    lab = contact_image(PatternSpec())
+    with pytest.raises(GBError, match="sever_px"):
+        uw.unwrap(lab, sever_px=np.zeros((3, 3), bool))
+
+
+def test_index_regions_and_split_row_refuse_maps_of_other_shapes():
+    spec = PatternSpec()
+    lab = contact_image(spec)
+    rel, region = welded_maps(lab)
+    with pytest.raises(GBError, match="index_regions: labels, relative, region must be 2-D arrays of one shape"):
+        uw.index_regions(lab, rel, region[:, :1], 1, spec)       # (the compiled pass would read past it)
+    with pytest.raises(GBError, match="split_row"):
+        uw.split_row(lab, rel[:5], region, 0, spec)
+
+
+def test_margin_px_of_arrays_equals_the_scalar_form():
+    """index_regions' margin per region (scalars) and split_row's per pseudo-region (arrays)."""
+    ev = np.array([0, 10, 300, 5000, 16280], np.int64)
+    seen = np.array([0, 1, 2, 5, 27])
+    for p in (uw.UnwrapParams(), uw.UnwrapParams(index_margin_events=0.0)):
+        vec = uw._margin_px(p, ev[:, None], seen[None, :])
+        ref = [[uw._margin_px(p, int(e), int(k)) for k in seen] for e in ev]
+        assert isinstance(ref[0][0], float) and vec.shape == (5, 5)
+        assert np.array_equal(vec, np.array(ref))
+    assert uw._margin_px(uw.UnwrapParams(), 300, 2) == min(0.25 * 300, 1.5 * 300 / 4)
