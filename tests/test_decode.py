@@ -1679,6 +1679,10 @@ def test_region_welded_at_a_lined_up_contact_row_is_split_by_its_markers():
     assert sm.stats["weld_split_px"] > 10000 and sm0.stats["weld_split_px"] == 0
     assert _wrong_off_edges(sm, r) == 0 and _wrong_off_edges(sm0, r) == 0
     assert s["unlit_reported"] <= s0["unlit_reported"]
+    from gbscan.commands.decode import summary
+    assert (f"{sm.stats['weld_split_px']} px indexed after splitting them at the row where their markers change "
+            "offset") in summary(sm)
+    assert "after splitting them" not in summary(sm0)
     # a frame without misfit regions is not unwrapped again: the same result, bit for bit
     r = render("sphere")
     a, b = decode(r.image, PatternSpec()), decode(r.image, PatternSpec(), DecodeParams(

@@ -232,6 +232,11 @@ def summary(sm) -> str:
         if st.get("transitions_joined"):
             text += f", {st['transitions_joined']} one-pixel stripe transitions called dark joined"
         text += ". "
+        again = [f"{st[key]} px indexed {how}" for key, how in (
+            ("weld_retry_px", "after cutting their rows at weaker spacing jumps"),
+            ("weld_split_px", "after splitting them at the row where their markers change offset")) if st.get(key)]
+        if again:
+            text += f"Large regions the markers could not index unwrapped again: {'; '.join(again)}. "
     if "why" in st:
         text += st["why"] + ". "
     if "blur_sigma_along_px" in st:
