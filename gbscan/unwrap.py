@@ -824,6 +824,11 @@ def _margin_px(params: UnwrapParams, evidence, seen):
     """Pixels by which the runner-up offset must mismatch more than the best: ``index_margin`` of
     the evidence, or ``index_margin_events`` marker events (evidence / (2 seen) px each) when less.
     Scalars give a float; arrays (one entry per region) an array."""
+    if np.ndim(evidence) == 0 and np.ndim(seen) == 0:    # index_regions, once a region: plain floats
+        m = params.index_margin * float(evidence)
+        if params.index_margin_events > 0 and seen > 0:
+            m = min(m, params.index_margin_events * float(evidence) / (2.0 * float(seen)))
+        return m
     ev, seen = np.broadcast_arrays(np.asarray(evidence, dtype=np.float64), np.asarray(seen))
     m = params.index_margin * ev
     if params.index_margin_events > 0:
