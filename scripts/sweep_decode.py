@@ -18,6 +18,8 @@ pixel with the simulator's truth (``r.proj_xy``):
     python scripts/sweep_decode.py --cache DIR --blur-grid 1,1.25,1.5,1.75,2,2.25,2.5,2.75,3
     python scripts/sweep_decode.py --cache DIR --depth-range 400 1200   # with a working volume
     python scripts/sweep_decode.py --cache DIR --jpeg 90 --jpeg-sampling 4:4:4   # frames stored as JPEG
+    python scripts/sweep_decode.py --cache DIR --set room-light   # warm and cool room light (44 frames)
+    python scripts/sweep_decode.py --cache DIR --set clean        # the clean preset (16 frames)
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
 wrong non-edge pixels under it (all wrong regions with ``--edges``), and a total.  Progress lines go to stderr.  Renders are cached in ``--cache`` (npz).
@@ -37,11 +39,24 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
     sys.path.insert(0, str(ROOT))
 
 
-def scene_list(quick: bool = False) -> list[tuple[str, str, int, int, object]]:
-    """``(name, preset, seed, supersample, factory)`` of every scene of the sweep."""
+#: the frame sets of ``--set``: the sweep's 48 scenes, the same objects under room light, the clean preset
+SETS = ("main", "room-light", "clean")
+
+
+def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str, int, int, object]]:
+    """``(name, preset, seed, supersample, factory)`` of every scene of the set ``which``
+    (:data:`SETS`).  A preset ``P+RGGB`` renders ``P`` through a Bayer mosaic; ``P@warmL`` /
+    ``P@coolL`` adds room light of level ``L`` (warm: red / green / blue 1 / 0.8 / 0.6 of it, as
+    ``--ambient``; cool: 0.6 / 0.8 / 1)."""
     from gbscan import sim
 
     S = sim.scenes
+    if which == "room-light":
+        return _room_light(S, quick)
+    if which == "clean":
+        return _clean_set(S, quick)
+    if which != "main":
+        raise ValueError(f"unknown frame set {which!r}, expected one of {SETS}")
     out = []
     # the batch tests' moving sequence (supersample 1, seed = frame)
     for i in range(0, 10):
@@ -88,6 +103,60 @@ def scene_list(quick: bool = False) -> list[tuple[str, str, int, int, object]]:
     return out
 
 
+def _room_light(S, quick: bool) -> list:
+    # README "Ambient light": warm light at 4 levels on four objects, cool light at 2 on three (44 frames)
+    objects = {"sphere": lambda: S.sphere((0.0, 0.0, 650.0), 100.0, wall_mm=900.0), "head": lambda: S.head(650.0),
+               "multi": lambda: S.multi_object(650.0), "step": lambda: S.step(650.0, 40.0)}
+    out = []
+    for tint, levels, names in (("warm", (0.05, 0.15, 0.25, 0.4), ("sphere", "head", "multi", "step")),
+                                ("cool", (0.15, 0.25), ("sphere", "head", "multi"))):
+        for level in levels:
+            for name in names:
+                for seed in (0, 1):
+                    out.append((f"{name}_{tint}{level:g}_s{seed}", f"typical@{tint}{level:g}", seed, 3, objects[name]))
+    return out[::3] if quick else out
+
+
+def _clean_set(S, quick: bool) -> list:
+    # the clean preset (no noise, a sharper projector): the multi-object scene at three distances,
+    # spheres, heads, steps, the real face (16 frames with it)
+    out = []
+    for d in (600.0, 650.0, 700.0):
+        for seed in (0, 1):
+            out.append((f"multi_{d:.0f}_clean_s{seed}", "clean", seed, 3, lambda d=d: S.multi_object(d)))
+    for seed, c in enumerate([(0.0, 0.0, 650.0), (-60.0, 20.0, 620.0), (50.0, -30.0, 700.0)]):
+        out.append((f"sphere_{seed}_clean_s{seed}", "clean", seed, 3, lambda c=c: S.sphere(c, 100.0, wall_mm=900.0)))
+    for seed, (d, yaw, pitch) in enumerate([(650.0, 0.0, 0.0), (620.0, 20.0, 0.0), (700.0, -15.0, 10.0)]):
+        out.append((f"head_{seed}_clean_s{seed}", "clean", seed, 3,
+                    lambda d=d, yaw=yaw, pitch=pitch: S.head(d, yaw, pitch)))
+    for seed, (d, h, x) in enumerate([(650.0, 40.0, 0.0), (700.0, 80.0, -40.0)]):
+        out.append((f"step_{seed}_clean_s{seed}", "clean", seed, 3, lambda d=d, h=h, x=x: S.step(d, h, edge_x_mm=x)))
+    if S.FRAN_PATH.is_file():
+        for seed, yaw in ((0, 0.0), (1, 20.0)):
+            out.append((f"fran_face_y{yaw:+.0f}_clean_s{seed}", "clean", seed, 3,
+                        lambda yaw=yaw: S.fran_face(distance_mm=650.0, yaw_deg=yaw)))
+    return out[::3] if quick else out
+
+
+#: room light's colour per ``@warm`` / ``@cool`` preset suffix (red, green, blue per unit of level)
+_TINTS = {"warm": None, "cool": (0.6, 0.8, 1.0)}   # warm: gbscan.cli_common.AMBIENT_TINT_RGB
+
+
+def _conditions(preset: str, ss: int, jpeg: dict | None):
+    """The :class:`gbscan.sim.Conditions` of a scene's preset string (see :func:`scene_list`)."""
+    from gbscan import sim
+    from gbscan.cli_common import AMBIENT_TINT_RGB
+
+    base, _, light = preset.partition("@")
+    name_, _, bayer = base.partition("+")   # "typical+RGGB": the preset seen through a Bayer mosaic
+    extra = {}
+    if light:
+        tint = light.rstrip("0123456789.")
+        rgb = _TINTS[tint] or AMBIENT_TINT_RGB
+        extra["ambient_rgb"] = tuple(round(float(light[len(tint):]) * t, 6) for t in rgb)
+    return dataclasses.replace(sim.preset(name_), supersample=ss, bayer=bayer, **extra, **(jpeg or {}))
+
+
 def load_or_render(name, preset, seed, ss, factory, cache: Path | None, jpeg: dict | None = None):
     """(image, truth_column, depth_edge, lit) of one scene, from the cache when there; ``jpeg``:
     :class:`gbscan.sim.Conditions` JPEG fields (frames stored as JPEG), None: lossless."""
@@ -98,12 +167,11 @@ def load_or_render(name, preset, seed, ss, factory, cache: Path | None, jpeg: di
     tag = ""
     if jpeg and jpeg["jpeg_quality"]:
         tag = f"_jpeg{jpeg['jpeg_quality']}_{jpeg['jpeg_sampling'].replace(':', '')}"
-    f = cache / f"{name}_{preset.replace('+', '_')}_ss{ss}{tag}.npz" if cache is not None else None
+    f = cache / f"{name}_{preset.replace('+', '_').replace('@', '_')}_ss{ss}{tag}.npz" if cache is not None else None
     if f is not None and f.exists():
         z = np.load(f)
         return z["image"], z["truth"], z["depth_edge"], z["lit"]
-    name_, _, bayer = preset.partition("+")   # "typical+RGGB": the preset seen through a Bayer mosaic
-    cond = dataclasses.replace(sim.preset(name_), supersample=ss, bayer=bayer, **(jpeg or {}))
+    cond = _conditions(preset, ss, jpeg)
     r = sim.render(sim.paper_rig(), factory(), render_pattern(PatternSpec()), cond, seed=seed)
     out = (r.image, r.proj_xy[..., 0].astype(np.float32), r.depth_edge, r.lit)
     if f is not None:
@@ -163,7 +231,7 @@ def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = 
     out = print if show else (lambda *a, **k: None)
     tot = {"lit": 0, "reported": 0, "wrong": 0, "wrong_edge": 0, "bad_scenes": 0, "scenes": len(scenes),
            "sq_err": 0.0, "n_err": 0, "over_1px": 0}
-    out(f"{'scene':26s} {'preset':12s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'col_rms':>7s} "
+    out(f"{'scene':26s} {'preset':16s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'col_rms':>7s} "
         f"{'>1px':>5s} {'ms':>6s}")
     for k, (name, preset, seed, ss, factory) in enumerate(scenes):
         t0 = time.perf_counter()
@@ -189,7 +257,7 @@ def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = 
         tot["wrong"] += counts["wrong"]
         tot["wrong_edge"] += counts["wrong_edge"]
         tot["bad_scenes"] += int(counts["wrong"] + counts["wrong_edge"] > 0)
-        out(f"{name:26s} {preset:12s} {100.0 * rep / max(cand.sum(), 1):9.2f} {counts['wrong']:6d} "
+        out(f"{name:26s} {preset:16s} {100.0 * rep / max(cand.sum(), 1):9.2f} {counts['wrong']:6d} "
             f"{counts['wrong_edge']:10d} {col_rms:7.3f} {int((np.abs(e) > 1.0).sum()):5d} {(t2 - t1) * 1e3:6.0f}",
             flush=True)
         for d in rows:
@@ -204,6 +272,10 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", help="folder to keep the renders in between runs (created)")
     ap.add_argument("--only", help="run only the scenes whose name contains this")
     ap.add_argument("--quick", action="store_true", help="every third scene")
+    ap.add_argument("--set", default="main", choices=SETS,
+                    help="the frames: main (the 48 scenes, default), room-light (44 frames: warm light 0.05-0.4 on "
+                         "sphere / head / multi-object / step, cool light 0.15, 0.25 on the first three, seeds "
+                         "0-1; README 'Ambient light'), clean (the clean preset, 16 frames)")
     ap.add_argument("--edges", action="store_true", help="also list regions wrong only on depth-edge pixels")
     ap.add_argument("--unwrap", action="append", default=[], metavar="NAME=VALUE",
                     help="override an UnwrapParams field (repeatable), e.g. --unwrap link_rows=3")
@@ -249,7 +321,7 @@ def main(argv=None) -> int:
         params = DecodeParams(**dover)
     except GBError as e:
         ap.error(str(e))
-    scenes = [s for s in scene_list(args.quick) if not args.only or args.only in s[0]]
+    scenes = [s for s in scene_list(args.quick, args.set) if not args.only or args.only in s[0]]
     if args.depth_range is not None and not 0 < args.depth_range[0] < args.depth_range[1]:
         ap.error(f"--depth-range: expected 0 < MIN_MM < MAX_MM, got {args.depth_range}")
     volume = working_volume(args.depth_range)
@@ -263,7 +335,7 @@ def main(argv=None) -> int:
         return 0
     tot = sweep(params, scenes, cache, args.edges, stripe_range=volume, jpeg=jpeg)
     rms = (tot["sq_err"] / tot["n_err"]) ** 0.5 if tot["n_err"] else float("nan")
-    print(f"{'TOTAL':26s} {'':12s} {100.0 * tot['reported'] / max(tot['lit'], 1):9.2f} {tot['wrong']:6d} "
+    print(f"{'TOTAL':26s} {'':16s} {100.0 * tot['reported'] / max(tot['lit'], 1):9.2f} {tot['wrong']:6d} "
           f"{tot['wrong_edge']:10d} {rms:7.3f} {tot['over_1px']:5d}   scenes with wrong pixels: "
           f"{tot['bad_scenes']}/{tot['scenes']}")
     return 0

@@ -2280,3 +2280,43 @@ def test_lit_window_decodes_bit_identically_to_the_whole_frame(scene, preset, kw
 def test_crop_param_is_validated():
     with pytest.raises(GBError, match="crop"):
         DecodeParams(crop=1)
+
+
+def test_sweep_script_frame_sets(tmp_path, capsys):
+    """scripts/sweep_decode.py --set: the 48-scene sweep, the room-light frames README "Ambient
+    light" quotes and the clean preset's, each from the project's own script; a preset's ``@warmL``
+    / ``@coolL`` suffix is room light of that level and tint (Bayer and room light combine)."""
+    import importlib.util
+    from pathlib import Path
+
+    from gbscan.cli_common import AMBIENT_TINT_RGB
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "sweep_decode.py"
+    spec = importlib.util.spec_from_file_location("sweep_decode", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    fran = 1 if sim.scenes.FRAN_PATH.is_file() else 0
+    assert [len(mod.scene_list(False, w)) for w in mod.SETS] == [44 + 4 * fran, 44, 14 + 2 * fran]
+    room = mod.scene_list(False, "room-light")
+    assert sum(p.startswith("typical@warm") for _, p, *_ in room) == 32 and len({n for n, *_ in room}) == 44
+    assert mod._conditions("typical@warm0.25", 3, None).ambient_rgb == tuple(0.25 * t for t in AMBIENT_TINT_RGB)
+    c = mod._conditions("typical+RGGB@cool0.15", 2, None)
+    assert c.ambient_rgb == pytest.approx((0.09, 0.12, 0.15)) and c.bayer == "RGGB" and c.supersample == 2
+    assert mod._conditions("clean", 3, None).ambient_rgb == sim.preset("clean").ambient_rgb
+    with pytest.raises(ValueError, match="unknown frame set"):
+        mod.scene_list(False, "bogus")
+    with pytest.raises(SystemExit) as e:
+        mod.main(["--set", "bogus"])
+    assert e.value.code == 2
+    capsys.readouterr()
+    argv = ["--set", "room-light", "--only", "head_warm0.4_s1", "--cache", str(tmp_path)]
+    assert mod.main(argv) == 0
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if x.startswith("head_warm0.4_s1"))
+    assert line.split()[1] == "typical@warm0.4" and float(line.split()[2]) > 50.0   # reported %
+    assert int(line.split()[3]) == 0 and "TOTAL" in out                               # none wrong
+    assert (tmp_path / "head_warm0.4_s1_typical_warm0.4_ss3.npz").is_file()
+    # a second run decodes the cached frame: the same figures (but the time)
+    assert mod.main(argv) == 0
+    again = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("head_warm0.4_s1"))
+    assert again.rsplit(None, 1)[0] == line.rsplit(None, 1)[0]
