@@ -1628,12 +1628,26 @@ def _reason_stats(counts: np.ndarray) -> dict:
             "reasons": {REASONS[k]: int(counts[k]) for k in REASONS}}
 
 
+def _unwrap_again(cls, un, idx, pattern, params, stripe_range, locate, segments1, **cuts):
+    """Unwrap ``cls.labels`` again with more cuts (``cuts``: :func:`gbscan.unwrap.unwrap`'s
+    ``retry_px`` / ``sever_px``; ``segments1``: step 1's segments of the first unwrap, reused) and
+    index it.  Returns (Unwrapped, RegionIndex, pixels gained) when it indexes more pixels than
+    ``un, idx``, else None."""
+    from . import unwrap as uw
+
+    p = params.unwrap
+    un2 = uw.unwrap(cls.labels, p, locate=locate, segments1=segments1, **cuts)
+    idx2 = uw.index_regions(cls.labels, un2.relative, un2.region, int(un2.region_px.size), pattern, p, stripe_range)
+    gain = int(un2.region_px[idx2.indexed].sum()) - int(un.region_px[idx.indexed].sum())
+    return (un2, idx2, gain) if gain > 0 else None
+
+
 def _retry_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1=None):
     """Unwrap again with the rows of failed regions also cut at weaker spacing jumps
     (``UnwrapParams.retry_spacing_ratio``), when regions of at least ``retry_min_px`` pixels
     failed with markers that contradict each other (``segments1``: step 1's segments of the
-    first unwrap, reused).  Returns the new (Unwrapped, RegionIndex, retry_px) when it indexes
-    more pixels, else None."""
+    first unwrap, reused).  Returns the new (Unwrapped, RegionIndex, pixels gained, retry_px)
+    when it indexes more pixels, else None."""
     from . import unwrap as uw
 
     p = params.unwrap
@@ -1647,22 +1661,16 @@ def _retry_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1=
     lut = np.zeros(failed.size + 1, bool)
     lut[:-1] = failed
     retry_px = lut[un.region]            # (region -1 -> the last entry, False)
-    un2 = uw.unwrap(cls.labels, p, locate=locate, retry_px=retry_px, segments1=segments1)
-    idx2 = uw.index_regions(cls.labels, un2.relative, un2.region, int(un2.region_px.size), pattern, p, stripe_range)
-    before = int(un.region_px[idx.indexed].sum())
-    after = int(un2.region_px[idx2.indexed].sum())
-    if after <= before:
-        return None
-    un2.stats["weld_retry_px"] = after - before
-    return un2, idx2, retry_px
+    again = _unwrap_again(cls, un, idx, pattern, params, stripe_range, locate, segments1, retry_px=retry_px)
+    return None if again is None else (*again, retry_px)
 
 
 def _split_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1=None, retry_px=None):
     """Unwrap again with the vertical links cut at the contact row of every region of at least
     ``retry_min_px`` pixels whose markers do not fit the pattern but fit two offsets above and
     below one row (:func:`gbscan.unwrap.split_row`, ``UnwrapParams.split_rows``); ``retry_px``:
-    the cuts of an accepted :func:`_retry_welds`, kept.  Returns the new (Unwrapped, RegionIndex)
-    when it indexes more pixels, else None."""
+    the cuts of an accepted :func:`_retry_welds`, kept.  Returns the new (Unwrapped, RegionIndex,
+    pixels gained) when it indexes more pixels, else None."""
     from . import unwrap as uw
 
     p = params.unwrap
@@ -1680,15 +1688,8 @@ def _split_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1=
         sever[v + 1] |= un.region[v + 1] == k
     if sever is None:
         return None
-    un2 = uw.unwrap(cls.labels, p, locate=locate, retry_px=retry_px, segments1=segments1, sever_px=sever)
-    idx2 = uw.index_regions(cls.labels, un2.relative, un2.region, int(un2.region_px.size), pattern, p, stripe_range)
-    before = int(un.region_px[idx.indexed].sum())
-    after = int(un2.region_px[idx2.indexed].sum())
-    if after <= before:
-        return None
-    un2.stats["weld_retry_px"] = int(un.stats.get("weld_retry_px", 0))
-    un2.stats["weld_split_px"] = after - before
-    return un2, idx2
+    return _unwrap_again(cls, un, idx, pattern, params, stripe_range, locate, segments1, retry_px=retry_px,
+                         sever_px=sever)
 
 
 def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(), *,
@@ -1828,12 +1829,12 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     idx = uw.index_regions(cls.labels, un.relative, un.region, n_reg, pattern, params.unwrap, stripe_range)
     segments1 = located.get("segs")
     retry = _retry_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1)
-    retry_px = None
+    retry_px, retry_gain, split_gain = None, 0, 0
     if retry is not None:
-        un, idx, retry_px = retry
+        un, idx, retry_gain, retry_px = retry
     split = _split_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1, retry_px)
     if split is not None:
-        un, idx = split
+        un, idx, split_gain = split
     n_reg = int(un.region_px.size)
     # stretches of rows whose own markers contradict their region's offset (a surface welded in
     # across a depth edge): reported as unindexed.  finish_pixels keeps any non-zero input reason.
@@ -1955,8 +1956,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     stats["regions_unindexed"] = int(n_reg - idx.indexed.sum())
     stats["region_why"] = dict(sorted(collections.Counter(str(w) for w in idx.why).items())) if n_reg else {}
     stats["boundaries"] = int(np.isfinite(jx).sum())
-    stats["weld_retry_px"] = int(un.stats.get("weld_retry_px", 0))
-    stats["weld_split_px"] = int(un.stats.get("weld_split_px", 0))
+    stats["weld_retry_px"], stats["weld_split_px"] = retry_gain, split_gain
     # of the "rim" pixels: masked by the guard rows (rim_guard) and by the brightness-step guard
     stats["rim_guard_px"], stats["rim_step_px"] = int(n_guard), int(n_step)
     stats["transitions_joined"] = int(joined.size)

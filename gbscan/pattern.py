@@ -84,6 +84,12 @@ class PatternSpec:
             return np.zeros(0, dtype=np.int64)
         return _marker_sequence(self.n_stripes)
 
+    def is_marker(self) -> np.ndarray:
+        """(n_stripes,) bool: True at the cyan marker stripes (all False for the pure pattern)."""
+        out = np.zeros(self.n_stripes, np.bool_)
+        out[self.marker_indices()] = True
+        return out
+
     def stripe_labels(self) -> np.ndarray:
         """(n_stripes,) uint8 colour label of each stripe (GREEN, BLUE or CYAN)."""
         k = np.arange(self.n_stripes)

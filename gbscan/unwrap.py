@@ -871,8 +871,7 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
     """
     _same_maps("index_regions", labels=labels, relative=relative, region=region)
     n_st = pattern.n_stripes
-    is_marker = np.zeros(n_st, bool)
-    is_marker[pattern.marker_indices()] = True
+    is_marker = pattern.is_marker()
     out = RegionIndex(np.zeros(n_regions, np.int64), np.zeros(n_regions, bool), np.zeros(n_regions, np.int64),
                       np.zeros(n_regions, np.int64), np.zeros(n_regions, np.int64), np.zeros(n_regions, np.int64),
                       ["unindexed"] * n_regions)
@@ -1011,8 +1010,7 @@ def marker_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, patter
     n_reg = int(idx.indexed.size)
     if not pattern.markers or n_reg == 0 or not idx.indexed.any():
         return np.zeros((0, 3), np.int32)
-    is_marker = np.zeros(pattern.n_stripes, np.bool_)
-    is_marker[pattern.marker_indices()] = True
+    is_marker = pattern.is_marker()
     sg = un.segments
     clean = gn is not None and bn is not None and float(params.conflict_clean_level) > 0
     no_channel = np.zeros((1, 1), np.float32)  # read only when the clean rule is on
@@ -1078,8 +1076,7 @@ def split_row(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, k: i
     pg = np.empty((2 * m, S), np.int64)
     pc[0::2], pg[0::2] = hc[cut], hg[cut]
     pc[1::2], pg[1::2] = hc[-1] - hc[cut], hg[-1] - hg[cut]
-    is_marker = np.zeros(pattern.n_stripes, np.bool_)
-    is_marker[pattern.marker_indices()] = True
+    is_marker = pattern.is_marker()
     status, seen, offset, evidence, mismatch, runner_up = kernels.score_offsets(
         np.full(2 * m, r0, np.int64), np.full(2 * m, r0 + S - 1, np.int64), np.arange(2 * m + 1, dtype=np.int64) * S,
         pc.ravel(), pg.ravel(), is_marker, int(params.min_marker_px), np.zeros(0, np.int64),
@@ -1246,9 +1243,7 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
                               - stats["refused_unmeasured"])
     # the markers at the linked offset must agree with the component's colours
     if accept_c.size:
-        is_marker = np.zeros(pattern.n_stripes, np.bool_)
-        if pattern.markers:
-            is_marker[pattern.marker_indices()] = True
+        is_marker = pattern.is_marker()
         take = np.zeros(segs.n, np.bool_)
         take[accept_c] = True
         shift = np.zeros(segs.n, np.int64)

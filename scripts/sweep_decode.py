@@ -138,8 +138,9 @@ def _clean_set(S, quick: bool) -> list:
     return out[::3] if quick else out
 
 
-#: room light's colour per ``@warm`` / ``@cool`` preset suffix (red, green, blue per unit of level)
-_TINTS = {"warm": None, "cool": (0.6, 0.8, 1.0)}   # warm: gbscan.cli_common.AMBIENT_TINT_RGB
+#: the ``@cool`` preset suffix's room light (red, green, blue per unit of level); ``@warm`` is
+#: ``gbscan.cli_common.AMBIENT_TINT_RGB``, the simulator's ``--ambient``
+COOL_TINT_RGB = (0.6, 0.8, 1.0)
 
 
 def _conditions(preset: str, ss: int, jpeg: dict | None):
@@ -152,7 +153,7 @@ def _conditions(preset: str, ss: int, jpeg: dict | None):
     extra = {}
     if light:
         tint = light.rstrip("0123456789.")
-        rgb = _TINTS[tint] or AMBIENT_TINT_RGB
+        rgb = {"warm": AMBIENT_TINT_RGB, "cool": COOL_TINT_RGB}[tint]
         extra["ambient_rgb"] = tuple(round(float(light[len(tint):]) * t, 6) for t in rgb)
     return dataclasses.replace(sim.preset(name_), supersample=ss, bayer=bayer, **extra, **(jpeg or {}))
 
