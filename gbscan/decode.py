@@ -114,7 +114,7 @@ class DecodeParams:
         sweep 83.65 / 83.76 % reported, wrong unchanged.  The swing test looks only at runs below
         twice ``min_run_separation`` (``kernels.SWING_SEP``) and against a neighbour that is no
         faint run itself (beside a marker the mixed pixels ``X Y C X`` are none); ``min_run_swing``
-        0.25 cost the sphere 0.6 points at the typical ambient.  See README "Ambient light".
+        0.25 cost the sphere 0.6 points at the typical ambient.  See docs/method.md "Ambient light".
     cyan_level : both normalised channels above this -> cyan marker.
     min_level : a pixel whose normalised green and blue are both below this is dark (the unlit
         side of a shadow or of the pattern's border).
@@ -301,9 +301,9 @@ class DecodeParams:
         1280x960 camera (7.2-7.7 px per stripe) reported sphere / head / multi-object 80 / 90 /
         76 % of the lit non-edge pixels with 3 / 17 / 67 of them on a wrong stripe, with a
         1920x1440 camera (11 px) 24 / 43 / 7 % with 0 / 0 / 9511 wrong; resampled, 92 / 82 / 83 %
-        and 91 / 85 / 83 % with none wrong off depth edges (``scripts/resample_study.py``, README
-        "Cameras with more pixels"; since then an object before darkness has its lit window alone
-        resampled, ``crop``).  Paper-rig frames (at most 4.63 px by the estimate) and 10 px
+        and 91 / 85 / 83 % with none wrong off depth edges (``scripts/resample_study.py``,
+        docs/method.md "Cameras with more pixels"; since then an object before darkness has its
+        lit window alone resampled, ``crop``).  Paper-rig frames (at most 4.63 px by the estimate) and 10 px
         stripes are never resampled.
     confidence_spread_px : each reported pixel's confidence is scaled down by its predicted
         column error ``s`` (projector px, :func:`gbscan.kernels.column_spread`: the column's
@@ -315,8 +315,8 @@ class DecodeParams:
         region, so without it the confidence said nothing about the column's accuracy (0: off, the
         confidence as before).  Reported pixels keep at least 0.25, so the cleaning's default
         ``min_confidence`` 0.2 drops none of them; a higher one trades points for accuracy.
-        Measured (``scripts/coverage_study.py --confidence``, seeds 0-1): see README "Per-point
-        confidence".
+        Measured (``scripts/coverage_study.py --confidence``, seeds 0-1): see docs/method.md
+        "Per-point confidence".
     crop : decode only the frame's lit window (:func:`lit_window`): the smallest rectangle holding
         every pixel whose green or blue reaches ``dark_level``, grown by twice the classifier's
         reach and ``CROP_REACH_PX``.  Every pixel outside it is dark for the classifier, so the
@@ -474,7 +474,7 @@ class StripeMap:
         reported pixel's ``column``, NaN where not reported (:func:`column_spread`); None when
         ``DecodeParams.confidence_spread_px`` is 0 (the model is not run).  On the simulator the
         columns' actual RMS error is 0.85-1.4 times it over the bulk of the pixels and 0.45-0.65
-        times it over the highest few per cent (README "Per-point confidence");
+        times it over the highest few per cent (docs/method.md "Per-point confidence");
         :attr:`gbscan.scan.Scan.sigma_mm` turns it into millimetres along the camera ray.
 
     A frame decoded resampled (``DecodeParams.resample``) expands ``relative``, ``region``,
@@ -649,7 +649,7 @@ SNR_STEP = (8, 2)
 #: ``RESAMPLE_ABOVE_PX`` camera px (at least ``RESAMPLE_MIN_RUNS`` colour runs measured) is shrunk
 #: to about ``RESAMPLE_TO_PX`` px per stripe, by at most ``MAX_RESAMPLE`` and to at least
 #: ``RESAMPLE_MIN_SIDE_PX`` a side.  The paper rig's frames read 3.5-4.6 px (its 48-frame sweep),
-#: with 10 px stripes 4.3-4.8 (validated as they are: README "Stripe width"); from twice the
+#: with 10 px stripes 4.3-4.8 (validated as they are: docs/method.md "Stripe width"); from twice the
 #: paper camera's pixels on, frames decoded as they are put pixels on wrong stripes and resampled
 #: none; in between (1.5 x: 5.4-5.8 px) both have a few (``scripts/resample_study.py``)
 RESAMPLE_ABOVE_PX = 5.0

@@ -57,7 +57,7 @@ AMBIENT_WARN = 0.15
 #: blue / green outside this range: one colour weak.  Typical 0.76-0.99 (skin reflects less
 #: blue); projector blue at 0.3: 0.23-0.33; hard 0.42-0.56.
 BLUE_GREEN_RANGE = (0.5, 2.0)
-#: camera px per stripe below this: the stripes alias (README: stripe width); above the second:
+#: camera px per stripe below this: the stripes alias (docs/method.md "Stripe width"); above the second:
 #: a narrower pattern would put more boundaries on the surface.  Paper rig at 650 mm: 3.5-4.7.
 STRIPE_PX_RANGE = (2.5, 12.0)
 #: shares of the stripe area lost as isolated / unindexed above these.  Typical: isolated up to
@@ -306,7 +306,7 @@ def findings(c: FrameCheck) -> list:
         if n < lo:
             # stripes wide in the camera: the decoder shrinks such frames by itself (--resample auto,
             # the default), which keeps its pixel-sized rules where they are validated; wider
-            # windows alone left welded strips on a wrong stripe (README "Cameras with more pixels")
+            # windows alone left welded strips on a wrong stripe (docs/method.md "Cameras with more pixels")
             warn("windows", f"the decoder's local windows ({c.window_px} px) span {n:.1f} stripes of "
                             f"{c.stripe_camera_px:.1f} camera px (best 2-5): decode with --resample auto (the "
                             f"default: the frame shrunk to ~3.75 px per stripe), or else --local-window-px {w}",

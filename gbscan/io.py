@@ -315,7 +315,7 @@ CHROMA_COST = ("the colour stripes lose half their resolution (simulated face, J
 def input_warning(path) -> str | None:
     """One line of warning when a camera frame is stored lossily in a way that costs the colour
     stripes (a JPEG: chroma subsampling or low quality), else None.  Measured on simulated frames
-    of the paper rig (``scripts/coverage_study.py --jpeg``; README "Camera frames")."""
+    of the paper rig (``scripts/coverage_study.py --jpeg``; docs/method.md "Camera frames")."""
     info = jpeg_info(path)
     if info is None or info["sampling"] == "grey":
         return None

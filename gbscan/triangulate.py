@@ -268,7 +268,7 @@ def point_sigma_mm(triangulator: "GridTriangulator", column: np.ndarray, column_
 
     Returns (H, W) float32 mm, NaN where the column, its error or both sides are missing.  Costs
     two triangulations of the frame and one pass (1.8 ms at 640x480).  What it does not contain: the
-    calibration's own error (a few hundredths of a mm in scale at 650 mm, README) and the chance
+    calibration's own error (a few hundredths of a mm in scale at 650 mm, docs/figures.md) and the chance
     that the pixel sits on a wrong stripe (the indexing's job; then the error is a whole stripe).
     """
     from . import geomkernels as gk

@@ -104,7 +104,7 @@ def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str,
 
 
 def _room_light(S, quick: bool) -> list:
-    # README "Ambient light": warm light at 4 levels on four objects, cool light at 2 on three (44 frames)
+    # docs/method.md "Ambient light": warm light at 4 levels on four objects, cool light at 2 on three (44 frames)
     objects = {"sphere": lambda: S.sphere((0.0, 0.0, 650.0), 100.0, wall_mm=900.0), "head": lambda: S.head(650.0),
                "multi": lambda: S.multi_object(650.0), "step": lambda: S.step(650.0, 40.0)}
     out = []
@@ -276,7 +276,7 @@ def main(argv=None) -> int:
     ap.add_argument("--set", default="main", choices=SETS,
                     help="the frames: main (the 48 scenes, default), room-light (44 frames: warm light 0.05-0.4 on "
                          "sphere / head / multi-object / step, cool light 0.15, 0.25 on the first three, seeds "
-                         "0-1; README 'Ambient light'), clean (the clean preset, 16 frames)")
+                         "0-1; docs/method.md 'Ambient light'), clean (the clean preset, 16 frames)")
     ap.add_argument("--edges", action="store_true", help="also list regions wrong only on depth-edge pixels")
     ap.add_argument("--unwrap", action="append", default=[], metavar="NAME=VALUE",
                     help="override an UnwrapParams field (repeatable), e.g. --unwrap link_rows=3")

@@ -2283,8 +2283,8 @@ def test_crop_param_is_validated():
 
 
 def test_sweep_script_frame_sets(tmp_path, capsys):
-    """scripts/sweep_decode.py --set: the 48-scene sweep, the room-light frames README "Ambient
-    light" quotes and the clean preset's, each from the project's own script; a preset's ``@warmL``
+    """scripts/sweep_decode.py --set: the 48-scene sweep, the room-light frames docs/method.md
+    "Ambient light" quotes and the clean preset's, each from the project's own script; a preset's ``@warmL``
     / ``@coolL`` suffix is room light of that level and tint (Bayer and room light combine)."""
     import importlib.util
     from pathlib import Path

@@ -679,7 +679,7 @@ def test_gap_edge_flags_in_scan_and_batch():
 
 
 def test_coverage_study_script_options(capsys):
-    """scripts/coverage_study.py (the figures README quotes): a decoder parameter off its default
+    """scripts/coverage_study.py (the figures README and docs/figures.md quote): a decoder parameter off its default
     and the yaw are applied and named in the header; bad ones are a usage error, not a traceback."""
     import importlib.util
     from pathlib import Path
