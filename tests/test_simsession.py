@@ -284,3 +284,28 @@ def test_cli_simulators_take_a_camera(tmp_path, capsys):
     assert e.value.code == 2
     with pytest.raises(GBError, match="camera_px"):
         sim.paper_rig(camera_px=(1280.5, 960))
+
+
+def test_cli_simulate_moving_object(tmp_path, capsys):
+    """--move-mm / --turn-deg: the object moves during the exposure, the wall behind it stays; the
+    truth file gains ``motion_edge`` (around the moving silhouette only); bad values are one error
+    line and no file."""
+    from gbscan.cli import main
+    from gbscan.commands.simulate import make_scene, motion_poses
+
+    scene = make_scene("sphere")
+    poses = motion_poses(scene, (0.0, 0.0, 4.0), 2.0, 3)
+    assert len(poses) == 3 and all(p.objects[-1] is scene.objects[-1] for p in poses)     # the wall stays
+    assert not any(p.objects[0] is scene.objects[0] for p in poses)                         # the ball moves
+    png, t = tmp_path / "m.png", tmp_path / "m.npz"
+    assert main(["simulate", "sphere", "-o", str(png), "--truth", str(t), "--move-mm", "0,0,4",
+                 "--exposure-steps", "3", "--preset", "clean"]) == 0
+    assert "moving 0,0,4 mm during the exposure (3 instants)" in capsys.readouterr().out
+    z = np.load(t)
+    edge, oid = z["motion_edge"], z["object_id"]
+    assert edge.any() and not edge[:20, :20].any() and not edge[oid == 0][::50].all()
+    for argv, msg in ((["--move-mm", "1,2"], "three numbers"), (["--move-mm", "1,0,0", "--exposure-steps", "2"],
+                                                                "odd number"), (["--turn-deg", "120"], "-90 .. 90")):
+        assert main(["simulate", "sphere", "-o", str(tmp_path / "x.png"), *argv]) == 1
+        assert msg in capsys.readouterr().err
+        assert not (tmp_path / "x.png").exists()

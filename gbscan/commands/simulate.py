@@ -4,6 +4,12 @@ SCENE is one of: plane, sphere, head, step, multi, board, face (the real face me
 ../shared/data/fran_face, when present).  The projector shows the single-shot pattern unless
 --frame gives another projector frame (PNG of the projector's size).  --truth writes the
 ground truth (point, lit, depth_edge, proj_xy, object_id, image) as .npz.
+
+--move-mm DX,DY,DZ and --turn-deg DEG make the object move during the exposure (camera frame,
+mm: x right, y down, z forward; the turn is about the vertical axis through the middle of the
+object): the frame averages --exposure-steps instants of it, the truth is mid-exposure, and the
+truth file also holds ``motion_edge`` (the pixels that see another surface meanwhile).  A wall
+behind the object (an unbounded plane) stays put.
 """
 from __future__ import annotations
 
@@ -32,6 +38,13 @@ def add_arguments(p):
     p.add_argument("--frame", help="projector frame PNG (default: the single-shot pattern)")
     p.add_argument("--stripe-px", type=int, default=8, help="stripe width of the default pattern (default 8)")
     p.add_argument("--no-markers", action="store_true", help="default pattern without cyan markers")
+    p.add_argument("--move-mm", metavar="DX,DY,DZ",
+                   help="the object moves this far during the exposure (mm, camera frame), e.g. 2,0,0")
+    p.add_argument("--turn-deg", type=float, default=0.0,
+                   help="the object turns this much during the exposure, about its vertical axis (a head "
+                        "turning), degrees")
+    p.add_argument("--exposure-steps", type=int, default=9,
+                   help="instants of the exposure rendered when the object moves (odd, default 9)")
 
 
 def make_scene(name: str, distance_mm: float = 650.0):
@@ -57,8 +70,31 @@ def make_scene(name: str, distance_mm: float = 650.0):
     raise ValueError(name)
 
 
+def motion_poses(scene, move_mm, turn_deg: float, steps: int) -> list:
+    """The scene at ``steps`` instants of an exposure during which its objects move ``move_mm``
+    (3,) and turn ``turn_deg`` about the vertical axis through their middle, centred on
+    mid-exposure.  Unbounded planes (a wall) stay, unless the scene is nothing else."""
+    import numpy as np
+
+    from gbscan.sim import scenes
+
+    still = [o for o in scene.objects if o.bounds() is None]
+    moving = [o for o in scene.objects if o.bounds() is not None] or list(scene.objects)
+    if len(moving) == len(scene.objects):
+        still = []
+    b = [o.bounds() for o in moving if o.bounds() is not None]
+    centre = (np.min([x[0] for x in b], axis=0) + np.max([x[1] for x in b], axis=0)) / 2 if b else np.zeros(3)
+    out = []
+    for f in np.linspace(-0.5, 0.5, steps) if steps > 1 else [0.0]:
+        sc = scenes.moved(scenes.Scene(moving, scene.name), scenes.rotation_deg(about_y=f * turn_deg),
+                          np.asarray(move_mm, float) * f, centre)
+        out.append(scenes.Scene(sc.objects + still, scene.name))
+    return out
+
+
 def run(args) -> int:
     import dataclasses
+    import math
     import time
     from pathlib import Path
 
@@ -74,6 +110,20 @@ def run(args) -> int:
         raise GBError("--raw writes a Bayer camera's mosaic: give --bayer PATTERN too")
     if args.truth and not args.truth.endswith(".npz"):
         raise GBError(f"--truth {args.truth}: the ground truth is written as .npz; give a name ending in .npz")
+    move = None
+    if args.move_mm is not None:
+        try:
+            move = [float(x) for x in args.move_mm.split(",")]
+        except ValueError:
+            move = []
+        if len(move) != 3 or not all(map(math.isfinite, move)):
+            raise GBError(f"--move-mm {args.move_mm}: expected three numbers DX,DY,DZ in mm, e.g. 2,0,0")
+    if not math.isfinite(args.turn_deg) or abs(args.turn_deg) > 90:
+        raise GBError(f"--turn-deg {args.turn_deg}: expected degrees within -90 .. 90")
+    moving = move is not None or args.turn_deg != 0
+    if moving and (args.exposure_steps < 3 or args.exposure_steps % 2 == 0):
+        raise GBError(f"--exposure-steps {args.exposure_steps}: expected an odd number >= 3 (the middle "
+                      f"instant is the ground truth)")
     rig = rig_from_args(args)
     pw, ph = rig.projector.width, rig.projector.height
     if args.frame:
@@ -84,10 +134,18 @@ def run(args) -> int:
     scene = make_scene(args.scene, args.distance_mm)
     cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer, bayer_raw=args.raw, **jpeg_fields(args),
                                **ambient_fields(args))
-    r = sim.render(rig, scene, frame, cond, seed=args.seed)
+    if moving:
+        r = sim.render_moving(rig, motion_poses(scene, move or (0.0, 0.0, 0.0), args.turn_deg, args.exposure_steps),
+                              frame, cond, seed=args.seed)
+    else:
+        r = sim.render(rig, scene, frame, cond, seed=args.seed)
     out = write_png(args.output, r.image)
     camera = (f", Bayer {args.bayer}{' raw mosaic' if args.raw else ''}" if args.bayer else "") + jpeg_label(args) \
         + ambient_label(args)
+    if moving:
+        camera += (f", moving {','.join(f'{x:g}' for x in move or (0, 0, 0))} mm"
+                   f"{f' turning {args.turn_deg:g} deg' if args.turn_deg else ''} during the exposure "
+                   f"({args.exposure_steps} instants)")
     msg = (f"wrote {out} ({args.scene}, preset {args.preset}{camera}{rig_label(args)}, seed {args.seed}, "
            f"{time.time() - t0:.1f} s)")
     if args.truth:

@@ -9,8 +9,10 @@ r = sim.render(rig, scene, projector_rgb, cond, seed=0)   # -> sim.Render
 ```
 One view under many projector frames: ``tr = sim.trace(rig, scene, cond)`` once, then
 ``sim.render_traced(rig, tr, frame, seed)`` per frame (only projector sampling and camera noise
-run again).  See :mod:`gbscan.sim.render` for the image formation and :mod:`gbscan.sim.presets` for the
-conditions.  Everything is in the OpenCV camera frame, mm.
+run again).  An object moving during the exposure: ``sim.render_moving(rig, poses, frame, cond)``
+with poses from ``sim.scenes.moved(scene, R, t_mm)``.  See :mod:`gbscan.sim.render` for the
+image formation and :mod:`gbscan.sim.presets` for the conditions.  Everything is in the OpenCV
+camera frame, mm.
 """
 from __future__ import annotations
 
@@ -18,9 +20,10 @@ from ..rig import paper_rig
 from . import scenes
 from .presets import PRESETS, Conditions, preset
 from .render import (Render, Trace, camera_image, column_errors, decode_dn, encode, incidence_deg, linear_signal,
-                     point_errors_mm, render, render_traced, trace)
+                     point_errors_mm, render, render_moving, render_traced, trace)
 from .scenes import Scene, combine
 
-__all__ = ["paper_rig", "scenes", "Conditions", "PRESETS", "preset", "Render", "render", "Scene", "combine",
+__all__ = ["paper_rig", "scenes", "Conditions", "PRESETS", "preset", "Render", "render", "render_moving", "Scene",
+           "combine",
            "encode", "decode_dn", "Trace", "trace", "render_traced", "linear_signal", "camera_image",
            "incidence_deg", "point_errors_mm", "column_errors"]

@@ -62,6 +62,10 @@ class Render:
         every hit in front of the projector (also outside its frame -- see ``lit``); NaN otherwise.
     object_id : (H, W) int16 index of the scene object hit, -1 for background.
     linear : (H, W, 3) float32 noise-free linear camera signal (before blur and noise; 1 = full scale).
+    motion_edge : (H, W) bool or None: in a frame of a moving scene (:func:`render_moving`), the
+        pixels whose first surface changes during the exposure (another object, none, or a depth
+        jump as for ``depth_edge``), dilated by one pixel: they mix surfaces as depth-edge pixels
+        do.  None for a still frame.
     """
 
     image: np.ndarray
@@ -71,13 +75,16 @@ class Render:
     proj_xy: np.ndarray
     object_id: np.ndarray
     linear: np.ndarray
+    motion_edge: np.ndarray | None = None
 
     def save_truth(self, path) -> None:
-        """Write the ground truth (and image) as a compressed .npz, atomically."""
+        """Write the ground truth (and image) as a compressed .npz, atomically (with
+        ``motion_edge`` when there is one)."""
         from ..io import save_npz
 
+        extra = {} if self.motion_edge is None else {"motion_edge": self.motion_edge}
         save_npz(path, image=self.image, point=self.point, lit=self.lit, depth_edge=self.depth_edge,
-                 proj_xy=self.proj_xy, object_id=self.object_id)
+                 proj_xy=self.proj_xy, object_id=self.object_id, **extra)
 
 
 # -- camera rays -------------------------------------------------------------------------------
@@ -518,6 +525,53 @@ def render(rig: Rig, scene: Scene, projector_rgb: np.ndarray, cond: Conditions |
     """
     frame = _check_frame(rig, projector_rgb)
     return render_traced(rig, trace(rig, scene, cond), frame, seed)
+
+
+def render_moving(rig: Rig, poses, projector_rgb: np.ndarray, cond: Conditions | str | None = None,
+                  seed: int | np.random.Generator | None = 0) -> Render:
+    """The camera frame of a scene that moves during the exposure.
+
+    ``poses``: a sequence of :class:`Scene`, the scene at equally spaced instants of the exposure
+    (an odd number, at least 1: the middle one is mid-exposure; :func:`gbscan.sim.scenes.moved`
+    makes them).  The projector and the camera stand still, so the stripes stay where the
+    projector's light planes meet the surface: a plane sliding along itself keeps its stripes in
+    place (only its texture smears), while depth changes shift them along the rows.  The
+    noise-free linear signal of every pose is averaged (float64), then the camera's blur, noise and
+    encoding run once (as :func:`render`).  Ground truth (``point``, ``proj_xy``, ``lit``,
+    ``depth_edge``, ``object_id``) is the middle pose's: what a scan of the frame should return;
+    ``motion_edge`` marks the pixels that see another surface during the exposure.  One pose gives
+    :func:`render`'s frame, bit for bit.  ``cond.motion_px`` is another thing: the whole image
+    smeared, as when the camera shakes.  Costs one :func:`trace` per pose."""
+    import cv2
+
+    poses = list(poses) if not isinstance(poses, Scene) else [poses]
+    if not poses or len(poses) % 2 == 0:
+        raise GBError(f"render_moving needs an odd number of poses (the middle one is mid-exposure), "
+                      f"got {len(poses)}")
+    frame = _check_frame(rig, projector_rgb)
+    cond = preset("typical") if cond is None else preset(cond)
+    acc = None
+    surfaces = []          # (ray length, object id) of every pose's pixel-centre rays
+    mid = None
+    for k, scene in enumerate(poses):
+        tr = trace(rig, scene, cond)
+        lin = linear_signal(tr, frame).astype(np.float64)
+        acc = lin if acc is None else acc + lin
+        surfaces.append((tr.t, tr.object_id))
+        if k == len(poses) // 2:
+            mid = tr
+    lin = (acc / len(poses)).astype(np.float32)
+    image = camera_image(lin, rig.camera, cond, _rng(seed))
+    changed = np.zeros(mid.t.shape, bool)
+    hit_mid = np.isfinite(mid.t)
+    for t, oid in surfaces:
+        hit = np.isfinite(t)
+        with np.errstate(invalid="ignore"):
+            changed |= (hit != hit_mid) | (oid != mid.object_id) | (
+                hit & hit_mid & (np.abs(t - mid.t) > EDGE_REL * np.minimum(t, mid.t)))
+    motion_edge = cv2.dilate(changed.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    return Render(image=image, point=mid.point, lit=mid.lit, depth_edge=mid.depth_edge, proj_xy=mid.proj_xy,
+                  object_id=mid.object_id, linear=lin, motion_edge=motion_edge)
 
 
 def point_errors_mm(r: Render, xyz: np.ndarray, valid: np.ndarray, footprint: bool = True) -> np.ndarray:

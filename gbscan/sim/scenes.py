@@ -365,6 +365,50 @@ class Mesh(Primitive):
 
 
 # -- scene -------------------------------------------------------------------------------------
+class Moved(Primitive):
+    """Another primitive moved rigidly: a point ``q`` of ``inner`` is at ``R @ q + t`` (camera
+    frame, mm).  Rays are taken into the inner primitive's frame and its normals brought back,
+    so its albedo (a texture) moves with it and ray lengths are unchanged.  Build with
+    :func:`moved`."""
+
+    def __init__(self, inner: Primitive, R, t):
+        R = np.asarray(R, dtype=np.float64)
+        t = np.asarray(t, dtype=np.float64).ravel()
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)) or \
+                not np.allclose(R @ R.T, np.eye(3), atol=1e-9) or np.linalg.det(R) < 0:
+            raise GBError("a rigid motion needs R a (3, 3) rotation matrix (orthonormal, determinant +1)")
+        if t.shape != (3,) or not np.all(np.isfinite(t)):
+            raise GBError(f"a rigid motion needs t a finite (3,) translation in mm, got {t}")
+        self.inner = inner
+        self.R = R
+        self.t = t
+        self.albedo_fn = inner.albedo_fn
+        self.convex = inner.convex
+        self.scatter_mm = getattr(inner, "scatter_mm", 0.0)
+
+    def intersect(self, o, d):
+        return self.inner.intersect(self.local(o), _mul(d, self.R))
+
+    def surface(self, p, aux):
+        n, a = self.inner.surface(self.local(p), aux)
+        return _mul(n, self.R.T), a
+
+    def occluded(self, o, d, t_max: float):
+        if isinstance(self.inner, (Mesh, Moved)):
+            return self.inner.occluded(self.local(o), _mul(d, self.R), t_max)
+        t, _ = self.intersect(o, d)
+        return t < t_max
+
+    def bounds(self):
+        b = self.inner.bounds()
+        if b is None:
+            return None
+        lo, hi = b
+        c = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        c = c @ self.R.T + self.t
+        return c.min(axis=0), c.max(axis=0)
+
+
 @dataclass
 class Hit:
     """First hits of N rays: ``t`` (N,) (inf: none), ``normal`` (N, 3) unit, facing the ray
@@ -435,7 +479,7 @@ class Scene:
                 todo &= source_id != i
             if not np.any(todo):
                 continue
-            if isinstance(obj, Mesh):
+            if isinstance(obj, (Mesh, Moved)):
                 occ[todo] = obj.occluded(o[todo], d[todo], t_max)
             else:
                 t, _ = obj.intersect(o[todo], d[todo])
@@ -457,6 +501,30 @@ def combine(*scenes: Scene, name: str | None = None) -> Scene:
 
 
 # -- builders ----------------------------------------------------------------------------------
+def rotation_deg(about_x: float = 0.0, about_y: float = 0.0, about_z: float = 0.0) -> np.ndarray:
+    """(3, 3) rotation by ``about_x``, then ``about_y``, then ``about_z`` degrees: ``Rz @ Ry @ Rx``
+    (camera frame: x right, y down, z forward; ``about_y`` turns a face left or right, a yaw)."""
+    az = np.radians(float(about_z))
+    Rz = np.array([[np.cos(az), -np.sin(az), 0], [np.sin(az), np.cos(az), 0], [0, 0, 1]])
+    return Rz @ _rot_xy(float(about_x), float(about_y))
+
+
+def moved(scene: Scene, R=None, t_mm=(0.0, 0.0, 0.0), about_mm=(0.0, 0.0, 0.0)) -> Scene:
+    """``scene`` moved rigidly: turned by the rotation ``R`` (default none) about the point
+    ``about_mm``, then shifted by ``t_mm`` -- a point ``p`` goes to ``R (p - c) + c + t``.  Every
+    object keeps its texture and its id.  The poses of a moving object during one exposure
+    (:func:`gbscan.sim.render_moving`) are scenes made by this."""
+    if not isinstance(scene, Scene):
+        raise GBError(f"moved() takes a Scene, got {type(scene).__name__}")
+    R = np.eye(3) if R is None else np.asarray(R, dtype=np.float64)
+    c = np.asarray(about_mm, dtype=np.float64).ravel()
+    t = np.asarray(t_mm, dtype=np.float64).ravel()
+    if c.shape != (3,) or t.shape != (3,):
+        raise GBError(f"moved(): t_mm and about_mm must be 3 numbers (mm), got {t_mm!r}, {about_mm!r}")
+    shift = t + c - R @ c if R.shape == (3, 3) else t
+    return Scene([Moved(o, R, shift) for o in scene.objects], scene.name)
+
+
 def _pos(name, v):
     v = float(v)
     if not np.isfinite(v) or v <= 0:
