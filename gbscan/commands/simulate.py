@@ -78,17 +78,16 @@ def motion_poses(scene, move_mm, turn_deg: float, steps: int) -> list:
 
     from gbscan.sim import scenes
 
-    still = [o for o in scene.objects if o.bounds() is None]
-    moving = [o for o in scene.objects if o.bounds() is not None] or list(scene.objects)
-    if len(moving) == len(scene.objects):
-        still = []
-    b = [o.bounds() for o in moving if o.bounds() is not None]
+    moves = [o.bounds() is not None for o in scene.objects]
+    if not any(moves):
+        moves = [True] * len(scene.objects)
+    b = [o.bounds() for o, m in zip(scene.objects, moves) if m and o.bounds() is not None]
     centre = (np.min([x[0] for x in b], axis=0) + np.max([x[1] for x in b], axis=0)) / 2 if b else np.zeros(3)
     out = []
     for f in np.linspace(-0.5, 0.5, steps) if steps > 1 else [0.0]:
-        sc = scenes.moved(scenes.Scene(moving, scene.name), scenes.rotation_deg(about_y=f * turn_deg),
-                          np.asarray(move_mm, float) * f, centre)
-        out.append(scenes.Scene(sc.objects + still, scene.name))
+        sc = scenes.moved(scene, scenes.rotation_deg(about_y=f * turn_deg), np.asarray(move_mm, float) * f, centre)
+        # (the objects keep their order, so their ids in the truth are the still scene's)
+        out.append(scenes.Scene([mo if m else o for o, mo, m in zip(scene.objects, sc.objects, moves)], scene.name))
     return out
 
 
