@@ -116,11 +116,105 @@ def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, re
     return mask, column, stripe, conf, counts
 
 
+#: region_histograms counts into this many copies of its table, by column (consecutive pixels
+#: never increment the same counter: no chain of stores and loads through one memory word)
+_HIST_COPIES = 8
+
+
+@njit(cache=True, nogil=True)
+def _region_range_row(rel, reg, lo, hi):
+    # the smallest and largest relative index of the row's region pixels, folded into lo, hi
+    for u in range(rel.size):
+        x = np.int64(rel[u]) if reg[u] >= 0 else 2 ** 62
+        y = np.int64(rel[u]) if reg[u] >= 0 else -2 ** 62
+        lo = min(lo, x)
+        hi = max(hi, y)
+    return lo, hi
+
+
+@njit(cache=True, nogil=True)
+def _histogram_slots_row(lab, rel, reg, RS, lo, spare4, tsz, slot):
+    # every pixel's counter: (region, relative - lo, class: 0 cyan, 1 green / blue, 2 other) in the
+    # copy of its column mod _HIST_COPIES; pixels outside regions to a spare counter
+    for u in range(slot.size):
+        k = np.int64(reg[u])
+        lb = lab[u]
+        cls = 2 - np.int64((lb == GREEN) | (lb == BLUE)) - 2 * np.int64(lb == CYAN)
+        base = (k * RS + (np.int64(rel[u]) - lo)) * 4 if k >= 0 else spare4
+        slot[u] = base + cls + (u & (_HIST_COPIES - 1)) * tsz
+
+
+@njit(cache=True, nogil=True)
+def _count_slots(slot, T):
+    for u in range(slot.size):
+        T[slot[u]] += 1
+
+
+@njit(cache=True, nogil=True)
+def _region_starts(rmin, rmax):
+    # where each region's counts start in the flat histograms (n_reg + 1,): its relative range
+    n_reg = rmin.size
+    start = np.zeros(n_reg + 1, np.int64)
+    for k in range(n_reg):
+        span = rmax[k] - rmin[k] + 1 if rmax[k] >= rmin[k] else 0
+        start[k + 1] = start[k] + span
+    return start
+
+
 @njit(cache=True, nogil=True)
 def region_histograms(labels, relative, region, n_reg):
     """Per region: relative index range and the pixel counts of cyan and of green/blue per
     relative index.  Returns ``rmin, rmax`` (n_reg,) and flat ``n_c, n_g`` with region ``k``'s
-    counts at ``start[k] .. start[k] + rmax[k] - rmin[k]``."""
+    counts at ``start[k] .. start[k] + rmax[k] - rmin[k]``.
+
+    One dense table of counters (region, relative index, class) over the frame's range of relative
+    indices, in ``_HIST_COPIES`` copies by column, filled row by row (every pixel's counter by a
+    vector loop, then the increments); the ranges and counts are read off the summed copies
+    (0.77 -> 0.42 ms on the plane's frame).  Where the table would cost more than the pixels
+    (regions x range over a 32nd of the frame) or there is no region pixel, two plain passes."""
+    H, W = labels.shape
+    lo = 2 ** 62
+    hi = -2 ** 62
+    for v in range(H):
+        lo, hi = _region_range_row(relative[v], region[v], lo, hi)
+    if lo > hi:   # no region pixel
+        return _region_histograms_loops(labels, relative, region, n_reg)
+    RS = hi - lo + 1
+    if n_reg * RS * 32 > H * W:
+        return _region_histograms_loops(labels, relative, region, n_reg)
+    spare4 = n_reg * RS * 4
+    tsz = spare4 + 4
+    T = np.zeros(tsz * _HIST_COPIES, np.int64)
+    slot = np.empty(W, np.int64)
+    for v in range(H):
+        _histogram_slots_row(labels[v], relative[v], region[v], RS, lo, spare4, tsz, slot)
+        _count_slots(slot, T)
+    for c in range(1, _HIST_COPIES):
+        for i in range(spare4):
+            T[i] += T[c * tsz + i]
+    rmin = np.full(n_reg, 2 ** 30, np.int64)
+    rmax = np.full(n_reg, -(2 ** 30), np.int64)
+    for k in range(n_reg):
+        for j in range(RS):
+            b = (k * RS + j) * 4
+            if T[b] + T[b + 1] + T[b + 2] > 0:
+                if rmin[k] > j + lo:
+                    rmin[k] = j + lo
+                rmax[k] = j + lo
+    start = _region_starts(rmin, rmax)
+    n_c = np.zeros(start[n_reg], np.int64)
+    n_g = np.zeros(start[n_reg], np.int64)
+    for k in range(n_reg):
+        for i in range(start[k + 1] - start[k]):
+            b = (k * RS + rmin[k] - lo + i) * 4
+            n_c[start[k] + i] = T[b]
+            n_g[start[k] + i] = T[b + 1]
+    return rmin, rmax, start, n_c, n_g
+
+
+@njit(cache=True, nogil=True)
+def _region_histograms_loops(labels, relative, region, n_reg):
+    # region_histograms by two plain passes over the pixels (its fallback)
     H, W = labels.shape
     rmin = np.full(n_reg, 2 ** 30, np.int64)
     rmax = np.full(n_reg, -(2 ** 30), np.int64)
@@ -133,10 +227,7 @@ def region_histograms(labels, relative, region, n_reg):
                     rmin[k] = r
                 if r > rmax[k]:
                     rmax[k] = r
-    start = np.zeros(n_reg + 1, np.int64)
-    for k in range(n_reg):
-        span = rmax[k] - rmin[k] + 1 if rmax[k] >= rmin[k] else 0
-        start[k + 1] = start[k] + span
+    start = _region_starts(rmin, rmax)
     n_c = np.zeros(start[n_reg], np.int64)
     n_g = np.zeros(start[n_reg], np.int64)
     for v in range(H):
