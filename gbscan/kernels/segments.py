@@ -359,7 +359,7 @@ def _vertical_votes_sorted(labels, seg, rel, n_seg):
     n_same)``: for each overlapping pair the winning offset, its votes and all same-label votes.
     """
     H, W = labels.shape
-    cap = H * W // 2 + 16
+    cap = max(H - 1, 0) * W + 16   # a key run per pixel of every row below the first at most
     ks = np.empty(cap, np.int64)
     kn = np.empty(cap, np.int32)
     n = 0
