@@ -7,6 +7,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ._common import ctz64
+
 
 # -- decoder: rim guard (gbscan.decode.rim_guard) --------------------------------------------------
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -324,6 +326,15 @@ def _unreport_rows(mask, column, stripe, conf, u, x0, x1, ok_code, code):
     return n
 
 
+@njit(cache=True, nogil=True)
+def _sg_mask_n(rrow, cur, due, v):
+    # bit t: rrow[t] != cur[t] or due[t] == v (rrow.size <= 64 pixels)
+    m = np.uint64(0)
+    for t in range(rrow.size):
+        m |= np.uint64((rrow[t] != cur[t]) | (due[t] == v)) << np.uint64(t)
+    return m
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def step_guard(img, lut, box, region, mask, column, stripe, conf, reach, ratio, half, flat, ok_code, code):
     """Mask ``code`` the reported pixels (``mask == ok_code``) on the dim side of a brightness
@@ -345,39 +356,50 @@ def step_guard(img, lut, box, region, mask, column, stripe, conf, reach, ratio, 
     column is in, and only their ends are looked at, each while its rows are recent (the top
     ``reach + half + 1`` rows after them, the bottom when the run ends); the brightness is
     computed there alone.
+
+    Each row is scanned 64 columns at a time for the columns whose region changes or whose top test
+    is due (a bit mask), and only those are visited (plane 0.36-0.50 -> 0.23-0.26 ms).
     """
     H, W = region.shape
     cur = np.full(W, -1, np.int32)
     start = np.zeros(W, np.int64)
-    due = np.full(W, H + 1, np.int64)   # row at which the stretch's top test can run (H + 1: done)
+    due = np.full(W, H + 1, np.int32)
     buf = np.empty(H, np.float32)
+    negrow = np.full(W, -1, np.int32)
     n = 0
     box_h = box // 2
-    top_rows = reach + half + 1         # the rows the top test reads
+    top_rows = reach + half + 1
     for v in range(H + 1):
-        for u in range(W):
-            r = region[v, u] if v < H else np.int32(-1)
-            if r == cur[u]:
-                if v == due[u]:
-                    # the top test, while its rows are recent (they are the same for any end below)
+        rrow = region[v] if v < H else negrow
+        v32 = np.int32(v)
+        base = 0
+        while base < W:
+            e = min(base + 64, W)
+            m = _sg_mask_n(rrow[base:e], cur[base:e], due[base:e], v32)
+            while m != np.uint64(0):
+                u = base + ctz64(m)
+                m &= m - np.uint64(1)
+                r = rrow[u]
+                if r == cur[u]:
+                    if v == due[u]:
+                        a = start[u]
+                        hi_t = _step_above(img, lut, box_h, u, a, v - 1, reach, ratio, half, flat, buf)
+                        n += _unreport_rows(mask, column, stripe, conf, u, a, hi_t, ok_code, code)
+                        due[u] = H + 1
+                    continue
+                if cur[u] >= 0:
                     a = start[u]
-                    hi_t = _step_above(img, lut, box_h, u, a, v - 1, reach, ratio, half, flat, buf)
-                    n += _unreport_rows(mask, column, stripe, conf, u, a, hi_t, ok_code, code)
-                    due[u] = H + 1
-                continue
-            if cur[u] >= 0:
-                a = start[u]
-                b = v - 1
-                if due[u] <= H:   # a short stretch: its top test now
-                    hi_t = _step_above(img, lut, box_h, u, a, b, reach, ratio, half, flat, buf)
-                    n += _unreport_rows(mask, column, stripe, conf, u, a, hi_t, ok_code, code)
-                lo_t = _step_below(img, lut, box_h, u, a, b, reach, ratio, half, flat, buf)
-                n += _unreport_rows(mask, column, stripe, conf, u, lo_t - 1, b, ok_code, code)
-            cur[u] = r
-            start[u] = v
-            due[u] = v + top_rows if r >= 0 else H + 1
+                    b = v - 1
+                    if due[u] <= H:
+                        hi_t = _step_above(img, lut, box_h, u, a, b, reach, ratio, half, flat, buf)
+                        n += _unreport_rows(mask, column, stripe, conf, u, a, hi_t, ok_code, code)
+                    lo_t = _step_below(img, lut, box_h, u, a, b, reach, ratio, half, flat, buf)
+                    n += _unreport_rows(mask, column, stripe, conf, u, lo_t - 1, b, ok_code, code)
+                cur[u] = r
+                start[u] = v
+                due[u] = v + top_rows if r >= 0 else H + 1
+            base = e
     return n
-
 
 @njit(cache=True, nogil=True)
 def bridge_cuts(j_x, seg_j0, seg_j1, ratio, pre):

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._common import CYAN, NONE
+from ._common import CYAN, NONE, ctz64
 from .segments import _vertical_votes_sorted
 
 
@@ -288,22 +288,6 @@ def _flush_pair(table, touched, n_t, out, ne):
     out[5, ne] = over
 
 
-#: count trailing zeros of a 64-bit word by a de Bruijn multiply (numba's own intrinsic lives in
-#: an internal module): the lowest set bit times the sequence, its top 6 bits index the table
-_DEBRUIJN64 = np.uint64(0x03F79D71B4CB0A89)
-_CTZ_TABLE = np.array([0, 1, 48, 2, 57, 49, 28, 3, 61, 58, 50, 42, 38, 29, 17, 4,
-                       62, 55, 59, 36, 53, 51, 43, 22, 45, 39, 33, 30, 24, 18, 12, 5,
-                       63, 47, 56, 27, 60, 41, 37, 16, 54, 35, 52, 21, 44, 32, 23, 11,
-                       46, 26, 40, 15, 34, 20, 31, 10, 25, 14, 19, 9, 13, 8, 7, 6], np.int64)
-
-
-@njit(cache=True, nogil=True)
-def _ctz64(m):
-    # the index of the lowest set bit of m (m != 0)
-    low = m & (~m + np.uint64(1))
-    return _CTZ_TABLE[(low * _DEBRUIJN64) >> np.uint64(58)]
-
-
 @njit(cache=True, nogil=True)
 def _row_keys(sr, tr, lr, lu, rr, ru, n_seg, key):
     # per pixel of a row: vertical_votes' key (pair * 4096 + offset + 2048), -1 where it has none
@@ -338,7 +322,7 @@ def _key_runs(key, st):
         for t in range(64):
             m |= np.uint64(A[t] != B[t]) << np.uint64(t)
         while m != np.uint64(0):
-            st[n] = base + _ctz64(m) + 1
+            st[n] = base + ctz64(m) + 1
             n += np.uint64(1)
             m &= m - np.uint64(1)
         base += 64
