@@ -824,11 +824,6 @@ def _margin_px(params: UnwrapParams, evidence, seen):
     """Pixels by which the runner-up offset must mismatch more than the best: ``index_margin`` of
     the evidence, or ``index_margin_events`` marker events (evidence / (2 seen) px each) when less.
     Scalars give a float; arrays (one entry per region) an array."""
-    if np.ndim(evidence) == 0 and np.ndim(seen) == 0:    # index_regions, once a region: plain floats
-        m = params.index_margin * float(evidence)
-        if params.index_margin_events > 0 and seen > 0:
-            m = min(m, params.index_margin_events * float(evidence) / (2.0 * float(seen)))
-        return m
     ev, seen = np.broadcast_arrays(np.asarray(evidence, dtype=np.float64), np.asarray(seen))
     m = params.index_margin * ev
     if params.index_margin_events > 0:
@@ -839,6 +834,33 @@ def _margin_px(params: UnwrapParams, evidence, seen):
 
 #: RegionIndex.why of a region whose best offset puts it outside the working volume
 OUTSIDE = "outside the working volume"
+#: RegionIndex.why of the scoring's statuses 0-2 (nothing to score)
+_STATUS_WHY = ("empty region", "region too thin", "region wider than the pattern")
+
+
+def _index_tests(params: UnwrapParams, status, seen, evidence, mismatch, runner_up) -> np.ndarray:
+    """The indexing's tests on scored regions (arrays, one entry per region, as
+    :func:`gbscan.kernels.score_offsets` returns them): (n,) int8, 0 where the region is indexed,
+    else the first test it fails, in this order: 1 nothing scored (status 0-2), 2 its best
+    offset outside the working volume (status 4), 3 too few markers seen, 4 the best offset
+    mismatches too much (:data:`MISFIT`), 5 the runner-up is not clearly worse (:data:`AMBIGUOUS`).
+    :func:`index_regions` and :func:`split_row` both decide by it."""
+    status, seen, evidence, mismatch, runner_up = (np.asarray(a) for a in (status, seen, evidence, mismatch,
+                                                                           runner_up))
+    return np.select([status < 3, status == 4, seen < params.min_markers,
+                      mismatch > params.max_mismatch * evidence,
+                      runner_up - mismatch < _margin_px(params, evidence, seen)],
+                     [1, 2, 3, 4, 5], 0).astype(np.int8)
+
+
+def _index_why(code: int, status: int, seen: int, params: UnwrapParams) -> str:
+    # RegionIndex.why of one region's _index_tests code
+    if code == 1:
+        return _STATUS_WHY[status]
+    if code == 3:
+        return f"too few markers ({seen} < {params.min_markers})"
+    return ("ok", None, OUTSIDE, None, MISFIT, AMBIGUOUS)[code]
+
 #: the working-volume test counts every 2nd row and column of a region (a fraction of its pixels)
 _VOLUME_STEP = 2
 
@@ -904,26 +926,14 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
         scored = status >= 3
         out.offset[scored], out.evidence[scored] = offset[scored], evidence[scored]
         out.mismatch[scored], out.runner_up[scored] = mismatch[scored], runner_up[scored]
-        for k in range(n_regions):
-            st = int(status[k])
-            if st < 3:
-                out.why[k] = ("empty region", "region too thin", "region wider than the pattern")[st]
-            elif st == 4:
-                out.why[k] = OUTSIDE
-            elif seen[k] < params.min_markers:
-                out.why[k] = f"too few markers ({int(seen[k])} < {params.min_markers})"
-            elif mismatch[k] > params.max_mismatch * evidence[k]:
-                out.why[k] = MISFIT
-            elif runner_up[k] - mismatch[k] < _margin_px(params, evidence[k], seen[k]):
-                out.why[k] = AMBIGUOUS
-            else:
-                out.indexed[k] = True
-                out.why[k] = "ok"
+        code = _index_tests(params, status, seen, evidence, mismatch, runner_up)
+        out.indexed[:] = code == 0
+        out.why = [_index_why(int(code[k]), int(status[k]), int(seen[k]), params) for k in range(n_regions)]
         return out
     for k in range(n_regions):
         r0, r1 = int(rmin[k]), int(rmax[k])
         if r1 < r0:
-            out.why[k] = "empty region"
+            out.why[k] = _STATUS_WHY[0]
             continue
         span = r1 - r0 + 1
         n_c = hc[start[k]:start[k + 1]]
@@ -934,7 +944,7 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
         tot = n_c + n_g
         core = np.flatnonzero(tot >= params.min_marker_px)
         if core.size == 0:
-            out.why[k] = "region too thin"
+            out.why[k] = _STATUS_WHY[1]
             continue
         c0, c1 = int(core[0]), int(core[-1])
         # extended pattern: pad by the region's span on both sides; outside the pattern every
@@ -954,7 +964,7 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
         A0 = np.arange(mis_all.size) - pad
         okA = (A0 + c0 >= -2) & (A0 + c1 <= n_st + 1) & ((A0 - r0) % 2 == 0)
         if not okA.any():
-            out.why[k] = "region wider than the pattern"
+            out.why[k] = _STATUS_WHY[2]
             continue
         mis = mis_all[okA]
         cand = A0[okA]
@@ -971,17 +981,10 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
         out.evidence[k] = ev
         out.mismatch[k] = b_mis
         out.runner_up[k] = second
-        if not inside[best]:
-            out.why[k] = OUTSIDE
-        elif seen < params.min_markers:
-            out.why[k] = f"too few markers ({seen} < {params.min_markers})"
-        elif b_mis > params.max_mismatch * ev:
-            out.why[k] = MISFIT
-        elif second - b_mis < _margin_px(params, ev, seen):
-            out.why[k] = AMBIGUOUS
-        else:
-            out.indexed[k] = True
-            out.why[k] = "ok"
+        st = 3 if inside[best] else 4
+        code = int(_index_tests(params, [st], [seen], [ev], [b_mis], [second])[0])
+        out.indexed[k] = code == 0
+        out.why[k] = _index_why(code, st, seen, params)
     return out
 
 
@@ -1081,9 +1084,7 @@ def split_row(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, k: i
         np.full(2 * m, r0, np.int64), np.full(2 * m, r0 + S - 1, np.int64), np.arange(2 * m + 1, dtype=np.int64) * S,
         pc.ravel(), pg.ravel(), is_marker, int(params.min_marker_px), np.zeros(0, np.int64),
         np.zeros(2 * m + 1, np.int64), np.zeros(2 * m, np.int64), float(params.volume_frac))
-    margin = _margin_px(params, evidence, seen)
-    ok = ((status == 3) & (seen >= params.min_markers) & (mismatch <= params.max_mismatch * evidence)
-          & (runner_up - mismatch >= margin))
+    ok = _index_tests(params, status, seen, evidence, mismatch, runner_up) == 0
     both = ok[0::2] & ok[1::2] & (offset[0::2] != offset[1::2])
     if not both.any():
         return None
