@@ -52,39 +52,33 @@ YAW_ARM_MM = 100.0
 
 
 def scene_parts(name: str):
-    """(moving scene, still scene or None, turning centre mm) of a study scene."""
+    """(scene, turning centre mm) of a study scene."""
     from gbscan import sim
 
     S = sim.scenes
     if name == "sphere":
-        return S.sphere((0.0, 0.0, 650.0), 100.0), None, (0.0, 0.0, 650.0)
+        return S.sphere((0.0, 0.0, 650.0), 100.0), (0.0, 0.0, 650.0)
     if name == "head":
-        return S.head(650.0), None, (0.0, 0.0, 650.0 + YAW_ARM_MM)
+        return S.head(650.0), (0.0, 0.0, 650.0 + YAW_ARM_MM)
     if name == "fran_face":
-        return S.fran_face(distance_mm=650.0), None, (0.0, 0.0, 650.0 + YAW_ARM_MM)
+        return S.fran_face(distance_mm=650.0), (0.0, 0.0, 650.0 + YAW_ARM_MM)
     if name == "plane":
-        return S.plane(650.0, tilt_deg=(0.0, 20.0)), None, (0.0, 0.0, 650.0)
+        return S.plane(650.0, tilt_deg=(0.0, 20.0)), (0.0, 0.0, 650.0)
     raise ValueError(name)
 
 
 def poses(name: str, motion: str, travel_mm: float, steps: int) -> list:
     """The scene at ``steps`` equally spaced instants of an exposure over which the object moves
-    ``travel_mm`` (centred on mid-exposure)."""
+    ``travel_mm`` (centred on mid-exposure; one instant when it does not move)."""
     from gbscan import sim
 
-    moving, still, centre = scene_parts(name)
+    scene, centre = scene_parts(name)
     n = 1 if travel_mm == 0 else steps
-    out = []
-    for s in (np.linspace(-0.5, 0.5, n) * travel_mm if n > 1 else [0.0]):
-        if motion == "yaw":
-            R = sim.scenes.rotation_deg(about_y=np.degrees(s / YAW_ARM_MM))
-            sc = sim.scenes.moved(moving, R, about_mm=centre)
-        else:
-            t = np.zeros(3)
-            t["xyz".index(motion)] = s
-            sc = sim.scenes.moved(moving, t_mm=t)
-        out.append(sc if still is None else sim.combine(sc, still, name=name))
-    return out
+    if motion == "yaw":
+        return sim.scenes.exposure_poses(scene, turn_deg=np.degrees(travel_mm / YAW_ARM_MM), steps=n, about_mm=centre)
+    move = np.zeros(3)
+    move["xyz".index(motion)] = travel_mm
+    return sim.scenes.exposure_poses(scene, move, steps=n)
 
 
 def study(name: str, motion: str, travel_mm: float, seed: int, steps: int, preset: str, supersample: int,

@@ -546,3 +546,6 @@ def test_render_moving_refuses_bad_poses(small_rig):
         S.moved(p, t_mm=(0.0, np.nan, 0.0))
     with pytest.raises(GBError, match="Scene"):
         S.moved("plane")
+    with pytest.raises(GBError, match="odd number"):
+        S.exposure_poses(p, (1.0, 0.0, 0.0), steps=4)
+    assert len(S.exposure_poses(p, steps=1)) == 1

@@ -291,10 +291,11 @@ def test_cli_simulate_moving_object(tmp_path, capsys):
     truth file gains ``motion_edge`` (around the moving silhouette only); bad values are one error
     line and no file."""
     from gbscan.cli import main
-    from gbscan.commands.simulate import make_scene, motion_poses
+    from gbscan.commands.simulate import make_scene
+    from gbscan.sim.scenes import exposure_poses
 
     scene = make_scene("sphere")
-    poses = motion_poses(scene, (0.0, 0.0, 4.0), 2.0, 3)
+    poses = exposure_poses(scene, (0.0, 0.0, 4.0), 2.0, 3)
     assert len(poses) == 3 and all(p.objects[-1] is scene.objects[-1] for p in poses)     # the wall stays
     assert not any(p.objects[0] is scene.objects[0] for p in poses)                         # the ball moves
     png, t = tmp_path / "m.png", tmp_path / "m.npz"

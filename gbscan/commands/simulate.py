@@ -70,27 +70,6 @@ def make_scene(name: str, distance_mm: float = 650.0):
     raise ValueError(name)
 
 
-def motion_poses(scene, move_mm, turn_deg: float, steps: int) -> list:
-    """The scene at ``steps`` instants of an exposure during which its objects move ``move_mm``
-    (3,) and turn ``turn_deg`` about the vertical axis through their middle, centred on
-    mid-exposure.  Unbounded planes (a wall) stay, unless the scene is nothing else."""
-    import numpy as np
-
-    from gbscan.sim import scenes
-
-    moves = [o.bounds() is not None for o in scene.objects]
-    if not any(moves):
-        moves = [True] * len(scene.objects)
-    b = [o.bounds() for o, m in zip(scene.objects, moves) if m and o.bounds() is not None]
-    centre = (np.min([x[0] for x in b], axis=0) + np.max([x[1] for x in b], axis=0)) / 2 if b else np.zeros(3)
-    out = []
-    for f in np.linspace(-0.5, 0.5, steps) if steps > 1 else [0.0]:
-        sc = scenes.moved(scene, scenes.rotation_deg(about_y=f * turn_deg), np.asarray(move_mm, float) * f, centre)
-        # (the objects keep their order, so their ids in the truth are the still scene's)
-        out.append(scenes.Scene([mo if m else o for o, mo, m in zip(scene.objects, sc.objects, moves)], scene.name))
-    return out
-
-
 def run(args) -> int:
     import dataclasses
     import math
@@ -134,8 +113,8 @@ def run(args) -> int:
     cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer, bayer_raw=args.raw, **jpeg_fields(args),
                                **ambient_fields(args))
     if moving:
-        r = sim.render_moving(rig, motion_poses(scene, move or (0.0, 0.0, 0.0), args.turn_deg, args.exposure_steps),
-                              frame, cond, seed=args.seed)
+        poses = sim.scenes.exposure_poses(scene, move or (0.0, 0.0, 0.0), args.turn_deg, args.exposure_steps)
+        r = sim.render_moving(rig, poses, frame, cond, seed=args.seed)
     else:
         r = sim.render(rig, scene, frame, cond, seed=args.seed)
     out = write_png(args.output, r.image)

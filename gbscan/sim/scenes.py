@@ -525,6 +525,35 @@ def moved(scene: Scene, R=None, t_mm=(0.0, 0.0, 0.0), about_mm=(0.0, 0.0, 0.0)) 
     return Scene([Moved(o, R, shift) for o in scene.objects], scene.name)
 
 
+def exposure_poses(scene: Scene, move_mm=(0.0, 0.0, 0.0), turn_deg: float = 0.0, steps: int = 9,
+                   about_mm=None) -> list:
+    """The scene at ``steps`` (odd) equally spaced instants of an exposure during which its objects
+    move ``move_mm`` (camera frame) and turn ``turn_deg`` about the vertical axis through
+    ``about_mm`` (default: the middle of the moving objects' bounds), centred on mid-exposure: at
+    instant ``f`` in -1/2 .. 1/2 a pose is moved ``f move_mm`` and turned ``f turn_deg`` (no turn at
+    all when ``turn_deg`` is 0: a pure shift).  An unbounded plane (a wall behind the object) stays,
+    unless the scene is nothing else; the objects keep their order, so their ids.  The poses of
+    :func:`gbscan.sim.render_moving`."""
+    if not isinstance(scene, Scene):
+        raise GBError(f"exposure_poses() takes a Scene, got {type(scene).__name__}")
+    if int(steps) < 1 or int(steps) % 2 == 0:
+        raise GBError(f"exposure_poses(): steps must be an odd number >= 1 (the middle instant is mid-exposure), "
+                      f"got {steps}")
+    moves = [o.bounds() is not None for o in scene.objects]
+    if not any(moves):
+        moves = [True] * len(scene.objects)
+    if about_mm is None:
+        b = [o.bounds() for o, m in zip(scene.objects, moves) if m and o.bounds() is not None]
+        about_mm = (np.min([x[0] for x in b], axis=0) + np.max([x[1] for x in b], axis=0)) / 2 if b else np.zeros(3)
+    move = np.asarray(move_mm, dtype=np.float64)
+    out = []
+    for f in np.linspace(-0.5, 0.5, int(steps)) if int(steps) > 1 else [0.0]:
+        R = None if turn_deg == 0 else rotation_deg(about_y=f * turn_deg)
+        sc = moved(scene, R, move * f, about_mm if R is not None else (0.0, 0.0, 0.0))
+        out.append(Scene([mo if m else o for o, mo, m in zip(scene.objects, sc.objects, moves)], scene.name))
+    return out
+
+
 def _pos(name, v):
     v = float(v)
     if not np.isfinite(v) or v <= 0:
