@@ -303,8 +303,8 @@ class DecodeParams:
         1920x1440 camera (11 px) 24 / 43 / 7 % with 0 / 0 / 9511 wrong; resampled, 92 / 82 / 83 %
         and 91 / 85 / 83 % with none wrong off depth edges (``scripts/resample_study.py``,
         docs/method.md "Cameras with more pixels"; since then an object before darkness has its
-        lit window alone resampled, ``crop``).  Paper-rig frames (at most 4.63 px by the estimate) and 10 px
-        stripes are never resampled.
+        lit window alone resampled, ``crop``).  Paper-rig frames (at most 4.63 px by the estimate)
+        and 10 px stripes are never resampled.
     confidence_spread_px : each reported pixel's confidence is scaled down by its predicted
         column error ``s`` (projector px, :func:`gbscan.kernels.column_spread`: the column's
         roughness along the stripes, its distance to the nearest unreported pixel, and a floor

@@ -44,8 +44,8 @@ class PatternSpec:
     """What the projector shows for a scan.
 
     width, height : projector resolution in pixels.
-    stripe_px : stripe width in projector pixels (see docs/method.md "Stripe width" for the choice of 8 at the paper's
-        geometry: about 3.4 camera pixels per stripe at 650 mm).
+    stripe_px : stripe width in projector pixels (see docs/method.md "Stripe width" for the choice
+        of 8 at the paper's geometry: about 3.4 camera pixels per stripe at 650 mm).
     markers : embed cyan marker stripes for absolute indexing (False: the paper's pure pattern).
     """
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._common import ctz64
+from ._common import ctz64, fill_row
 
 
 # -- decoder: rim guard (gbscan.decode.rim_guard) --------------------------------------------------
@@ -586,13 +586,6 @@ def _spread_out(sp2, m, ok_code, out):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _nan_row(out):
-    nan = np.float32(np.nan)
-    for u in range(out.size):
-        out[u] = nan
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
 def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px, edge_cap, floor_px, sigma0,
                   conf_floor, spread, edge_rows_px, sources):
     """Predicted error (projector px) of every reported pixel's column (``mask == ok_code``), and the
@@ -657,7 +650,7 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
     if U1 <= U0:   # nothing reported
         if has_out:
             for v in range(H):
-                _nan_row(spread[v])
+                fill_row(spread[v], np.float32(np.nan))
         return
     nr = 2 * h + 2
     NU = U1 - U0                              # the columns whose roughness is ever read
@@ -698,7 +691,7 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
         hi = span_hi[v]
         if hi <= lo:
             if has_out:
-                _nan_row(spread[v])
+                fill_row(spread[v], np.float32(np.nan))
             continue
         n = hi - lo
         _edge_dists(F, v, cap, lo, (n + 63) >> 6, dr, dv)
@@ -708,5 +701,5 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
             _conf_row(conf[v, lo:hi], sp2[:n], mr, ok_code, inv_s02, cfl)
         if has_out:
             _spread_out(sp2[:n], mr, ok_code, spread[v, lo:hi])
-            _nan_row(spread[v, :lo])
-            _nan_row(spread[v, hi:])
+            fill_row(spread[v, :lo], np.float32(np.nan))
+            fill_row(spread[v, hi:], np.float32(np.nan))
