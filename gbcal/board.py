@@ -144,8 +144,10 @@ def detect(image: np.ndarray, board: Board, *, refine: bool = True, max_sharpnes
 
 def detect_with_reason(image: np.ndarray, board: Board, *, refine: bool = True,
                        max_sharpness_px: float = MAX_SHARPNESS_PX,
-                       min_contrast: float = MIN_CONTRAST) -> tuple[Detection | None, str]:
-    """Find ``board`` in ``image``; returns ``(detection, "")`` or ``(None, reason)``.
+                       min_contrast: float = MIN_CONTRAST, what: str = "image") -> tuple[Detection | None, str]:
+    """Find ``board`` in ``image``; returns ``(detection, "")`` or ``(None, reason)``.  An image
+    that cannot hold a board (not 8/16-bit grey or RGB, under 16 px a side) is a GBError naming
+    it ``what``.
 
     OpenCV's sector-based detector (``findChessboardCornersSBWithMeta`` with NORMALIZE_IMAGE |
     EXHAUSTIVE) runs first, then the classic ``findChessboardCorners``; with ``refine`` the
@@ -157,7 +159,7 @@ def detect_with_reason(image: np.ndarray, board: Board, *, refine: bool = True,
     """
     import cv2
 
-    gray = as_gray(image)
+    gray = as_gray(image, what)
     h, w = gray.shape
     size = board.pattern_size
     # CALIB_CB_ACCURACY (2x upsampled fit) is left out: cornerSubPix replaces its positions anyway

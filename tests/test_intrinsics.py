@@ -269,6 +269,8 @@ def test_camera_command_bad_input_is_one_line_and_leaves_no_file(board_images, t
 
     small = tmp_path / "small.png"
     write_png(small, np.zeros((120, 160), np.uint8))
+    tiny = tmp_path / "tiny.png"
+    write_png(tiny, np.zeros((10, 10), np.uint8))
     noboard = tmp_path / "noboard"
     noboard.mkdir()
     for i in range(3):
@@ -279,6 +281,7 @@ def test_camera_command_bad_input_is_one_line_and_leaves_no_file(board_images, t
         ([folder / "cap00.png", folder / "cap01.png"], "too few captures"),
         ([noboard], "too few captures with a detected board: 0 of 3"),
         ([tmp_path / "missing.png"], "missing.png does not exist"),
+        ([tiny], "tiny.png: image of 10x10 px is too small to hold a board"),
         ([str(tmp_path / "*.jpeg")], "no file matches"),
         ([folder, "--board", "9by6"], "COLSxROWS"),
     ]

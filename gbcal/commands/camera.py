@@ -102,7 +102,7 @@ def run(args) -> int:
         elif s != size:
             raise GBError(f"image {path} is {s[0]}x{s[1]} but {paths[0]} is {size[0]}x{size[1]}; all images "
                           "must come from one camera at one resolution")
-        det, reason = detect_with_reason(gray, board, max_sharpness_px=max_blur)
+        det, reason = detect_with_reason(gray, board, max_sharpness_px=max_blur, what=f"image {path}")
         detections.append(det)
         names.append(path.name)
         status = (f"found ({det.method}, edges {det.sharpness_px:.1f} px)" if det is not None
