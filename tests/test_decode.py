@@ -2375,3 +2375,99 @@ def test_sweep_script_frame_sets(tmp_path, capsys):
     assert mod.main(argv) == 0
     again = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("head_warm0.4_s1"))
     assert again.rsplit(None, 1)[0] == line.rsplit(None, 1)[0]
+
+
+def _finish_pixels_reference(reason, labels, region, relative, column_rel, inconsistent, reg_shift, reg_indexed,
+                             reg_margin, contrast, w, n_stripes, min_contrast, n_codes, conf_floor):
+    # kernels.finish_pixels' rules pixel by pixel in plain Python (region, column_rel in place)
+    H, W = reason.shape
+    pm = reason.astype(np.uint8).copy()
+    pc = np.zeros((H, W), np.float32)
+    ps = np.zeros((H, W), np.int64)
+    for v in range(H):
+        for u in range(W):
+            if pm[v, u]:
+                continue
+            r, gap = region[v, u], False
+            if r < 0 and labels[v, u] == 0 and 0 < u < W - 1 and region[v, u - 1] >= 0 \
+                    and region[v, u - 1] == region[v, u + 1]:
+                r = region[v, u] = region[v, u - 1]
+                gap = True
+            if r < 0:
+                pm[v, u] = 4
+            elif not reg_indexed[r]:
+                pm[v, u] = 6
+            elif inconsistent[v, u]:
+                pm[v, u] = 5
+            elif np.isnan(column_rel[v, u]):
+                pm[v, u] = 7
+            else:
+                c = float(column_rel[v, u]) + int(reg_shift[r]) * w
+                k = int(np.floor((c + 0.5) / w)) if gap else int(relative[v, u]) + int(reg_shift[r])
+                if abs(c - (k * w + 0.5 * (w - 1))) > w or k < 0 or k >= n_stripes:
+                    pm[v, u] = 5
+                else:
+                    pc[v, u], ps[v, u] = c, k
+    mask = pm.copy()
+    for v in range(H):
+        for u in range(W):
+            if pm[v, u] == 0 and not any(0 <= vv < H and pm[vv, u] == 0 and abs(pc[vv, u] - pc[v, u]) <= 0.5 * w
+                                         for vv in (v - 1, v + 1)):
+                mask[v, u] = 5
+    ok = mask == 0
+    column = np.where(ok, pc, np.nan).astype(np.float32)
+    stripe = np.where(ok, ps, -1).astype(np.int32)
+    cc = np.clip((contrast.astype(np.float64) - min_contrast) / max(min_contrast, 1e-3), 0, 1)
+    conf = np.where(ok, conf_floor + (1 - conf_floor) * cc * reg_margin[np.maximum(region, 0)], 0).astype(np.float32)
+    column_rel[region < 0] = np.nan
+    counts = np.bincount(mask[mask < n_codes], minlength=n_codes)
+    return mask, column, stripe, conf, counts
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_finish_pixels_equals_its_rules_written_plainly(seed):
+    """kernels.finish_pixels (rows of one indexed region branch-free, the others and the one-pixel
+    gaps pixel by pixel, the vertical check a row behind) against its rules in plain Python, on
+    random maps: rows of one region with gaps, rows of several, unindexed regions, NaN columns,
+    columns a stripe off, inconsistent pixels and input reasons (some past the counted codes)."""
+    from gbscan import kernels
+
+    rng = np.random.default_rng(seed)
+    H, W, w, n_st = 23, 61, 8, 128
+    n_reg = 4
+    region = np.full((H, W), -1, np.int32)
+    for v in range(H):
+        if rng.random() < 0.6:           # one region, with holes
+            region[v] = rng.integers(0, n_reg)
+        else:                            # several, in stretches
+            cuts = np.sort(rng.integers(0, W, 3))
+            for a, b in zip(np.r_[0, cuts], np.r_[cuts, W]):
+                region[v, a:b] = rng.integers(-1, n_reg)
+        region[v, rng.random(W) < 0.08] = -1
+    labels = np.where(region >= 0, rng.integers(1, 4, (H, W)), 0).astype(np.uint8)
+    labels[(region < 0) & (rng.random((H, W)) < 0.3)] = 1    # some holes are labelled: not joined
+    reg_shift = rng.integers(0, 10, n_reg).astype(np.int64)
+    reg_indexed = rng.random(n_reg) < 0.8
+    reg_margin = rng.random(n_reg).astype(np.float32)
+    u = np.arange(W)[None, :] + 0.0 * np.arange(H)[:, None]
+    column_rel = (20.0 + 1.3 * u + rng.normal(0, 0.3, (H, W))).astype(np.float32)
+    column_rel[rng.random((H, W)) < 0.05] += 2.5 * w                  # a stripe off: inconsistent
+    column_rel[rng.random((H, W)) < 0.04] = np.nan
+    relative = np.floor((np.nan_to_num(column_rel, nan=0.0).astype(np.float64) + 0.5) / w).astype(np.int32)
+    inconsistent = rng.random((H, W)) < 0.03
+    reason = np.where(rng.random((H, W)) < 0.1, rng.integers(1, 16, (H, W)), 0).astype(np.uint8)
+    contrast = rng.random((H, W)).astype(np.float32)
+    n_codes = len(REASONS)
+    args = (reason, labels, region, relative, column_rel, inconsistent, reg_shift, reg_indexed, reg_margin, contrast)
+    a = [x.copy() for x in args]
+    b = [x.copy() for x in args]
+    got = kernels.finish_pixels(*a, w, n_st, 0.05, n_codes, 0.25)
+    want = _finish_pixels_reference(*b, w, n_st, 0.05, n_codes, 0.25)
+    for g, x in zip(got, want):
+        np.testing.assert_array_equal(g, x)
+    np.testing.assert_array_equal(a[2], b[2])                           # joined gaps
+    np.testing.assert_array_equal(a[4], b[4])                           # column_rel NaN outside regions
+    m = got[0]
+    assert (m == 0).sum() > 100 and {4, 5, 6, 7} <= set(np.unique(m))
+    joined = (args[2] < 0) & (a[2] >= 0)
+    assert joined.any()

@@ -1228,3 +1228,27 @@ def test_margin_px_of_arrays_equals_the_scalar_form():
         assert isinstance(ref[0][0], float) and vec.shape == (5, 5)
         assert np.array_equal(vec, np.array(ref))
     assert uw._margin_px(uw.UnwrapParams(), 300, 2) == min(0.25 * 300, 1.5 * 300 / 4)
+
+
+def test_run_starts_equals_the_label_changes():
+    """kernels.run_starts (64 pixel pairs at a time from a bit mask of changes, the row's last block
+    overlapping the one before; rows under 65 px pixel by pixel) against np.diff, on rows of every
+    width around the block sizes and of long runs, noise and constant labels."""
+    from gbscan import kernels
+
+    rng = np.random.default_rng(3)
+    widths = list(range(1, 140)) + [191, 192, 193, 255, 256, 257, 640, 641]
+    for W in widths:
+        for kind in range(3):
+            if kind == 0:
+                row = rng.integers(0, 4, W).astype(np.uint8)                       # noise
+            elif kind == 1:
+                row = np.repeat(rng.integers(0, 4, W), rng.integers(1, 9, W))[:W].astype(np.uint8)  # runs
+            else:
+                row = np.full(W, rng.integers(0, 4), np.uint8)                      # one label
+            rs = np.full(W + 1, -7, np.int32)
+            n = kernels.run_starts(row, rs)
+            want = np.r_[0, np.flatnonzero(np.diff(row)) + 1]
+            assert n == want.size, (W, kind)
+            np.testing.assert_array_equal(rs[:n], want)
+            assert rs[n] == W

@@ -574,12 +574,21 @@ def faint_runs_row(labels, reason, gn, bn, g, b, min_sep, min_swing, end_gap):
     that fade out at a projector terminator, where the local windows still see the stripes (see
     ``DecodeParams.min_run_separation``).  Runs inside a stretch stay (they carry the row's count
     across a dim patch); cyan runs stop the peeling (a marker lights both channels)."""
+    if labels.size > 0:
+        _faint_runs_row(labels, reason, gn, bn, g, b, min_sep, min_swing, end_gap, np.empty(labels.size + 1, np.int32))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _faint_runs_row(labels, reason, gn, bn, g, b, min_sep, min_swing, end_gap, rs):
+    # faint_runs_row with the run starts in scratch rs ((W + 1,) int32, W >= 1: reused across rows)
     if min_sep <= 0 and min_swing <= 0:
         return
     W = labels.size
-    if W == 0:
+    top = labels[0]
+    for u in range(W):                # a row without labels has nothing to peel (vectorised test)
+        top = max(top, labels[u])
+    if top == NONE:
         return
-    rs = np.empty(W + 1, np.int32)
     nr = run_starts(labels, rs)       # then the runs from each end of the row
     for direction in range(2):
         none_len = end_gap            # the row's border is an end
@@ -1085,17 +1094,16 @@ def classify_frame(Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w, cyan_level, min_
     threshold window (0: global threshold).  Writes labels, reason, gn, bn, contrast ((H, W)).
     (:func:`stream_frame` runs the same steps on rows it blurs as it goes.)
     """
-    H, W = Bg.shape
-    sc = _classify_scratch(W, thr_w, norm_w)
-    for y in range(H + thr_w // 2):
-        _classify_step(y, H, Lg, Lb, rmax, H, Bg, Bb, H, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin,
-                       min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, sc,
-                       labels, reason, gn, bn, contrast)
+    no_img = np.empty((0, 0, 3), np.uint8)
+    no_kernel = np.empty(0, np.float32)
+    _rows_1_3(False, no_img, no_kernel, no_kernel, Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w, cyan_level, min_level,
+              raw_margin, min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, labels,
+              reason, gn, bn, contrast)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _classify_scratch(W, thr_w, norm_w):
-    # the row scratch of _classify_step: separate arrays (rows of one 2-D array would not vectorise)
+    # the row scratch of _rows_1_3: separate arrays (rows of one 2-D array would not vectorise)
     t = thr_w // 2
     n = W + 2 * (norm_w // 2)
     nt = W + 2 * t
@@ -1108,68 +1116,100 @@ def _classify_scratch(W, thr_w, norm_w):
             np.empty(n, f32), np.empty(n, f32), np.empty(n, f32), np.empty(n, f32),             # s4 .. s7
             np.empty(n, f32), np.empty(n, f32),                                                 # ta, tb
             np.empty(W, f32), np.empty(W, f32), np.empty(W, f32), np.empty(W, f32),             # lo_g .. hi_b
-            np.empty(W, f32))                                                                   # raw_hi
+            np.empty(W, f32), np.empty(W + 1, np.int32))                                        # raw_hi, run starts
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _classify_step(y, H, Lg, Lb, rmax, nL, Bg, Bb, nB, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin,
-                   min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, sc, labels,
-                   reason, gn, bn, contrast):
-    # Step y of stages 2-3 (y = 0 .. H + thr_w//2 - 1): d of blurred row y (y < H) into the ring of
-    # the threshold window, then row v = y - thr_w//2 classified (v >= 0).  Image row k of the
-    # linear (Lg, Lb, rmax) and blurred (Bg, Bb) channels is row k % nL / k % nB of those arrays
-    # (whole images: nL = nB = H; rings: the rows these two steps read must still be there).
-    (Dr, rows, Pd, tda, tdb, thr, Pg, Pb, LOg, HIg, LOb, HIb, s0, s1, s2, s3, s4, s5, s6, s7, ta, tb,
-     lo_g, hi_g, lo_b, hi_b, raw_hi) = sc
-    W = Bg.shape[1]
+def _rows_1_3(stream, img, lut, kh, Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin,
+              min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, labels, reason, gn,
+              bn, contrast):
+    # The row loop of classify_frame (stream False: Lg .. Bb whole images) and stream_frame (stream
+    # True: rings of rows, filled from img as the loop goes; img, lut, kh unused otherwise).  Step y
+    # (y = 0 .. H + thr_w//2 - 1): d of blurred row y (y < H) into the ring of the threshold window,
+    # then row v = y - thr_w//2 classified (v >= 0).  Image row k of the linear (Lg, Lb, rmax) and
+    # blurred (Bg, Bb) channels is row k % nL / k % nB of those arrays.  One function with the
+    # scratch rows as its locals: a step function called (or inlined) per row took its scratch
+    # from a tuple, whose unpacking costs reference counts on every row (-5 % with the loop here).
+    # Returns the largest raw green or blue value (stream True).
+    H, W = labels.shape
+    nL = Lg.shape[0]
+    nB = Bg.shape[0]
     t = thr_w // 2
     h = norm_w // 2
     nD = 2 * t + 2
-    v = y - t
-    if t > 0 and v - t - 1 >= 0 and y < H:
-        # column_sums' update step with the new row's d computed in the same loop
-        _ratio_update_row(Bg[y % nB], Bb[y % nB], sg, sb, Dr[y % nD], Dr[(v - t - 1) % nD], Pd[t:t + W])
-    else:
-        if y < H:
-            ratio_row(Bg[y % nB], Bb[y % nB], sg, sb, Dr[y % nD])
-        if t > 0 and v >= 0:
-            column_sums(Dr, v, H, thr_w, nD, rows, Pd)
-    if v < 0:
-        return
-    if t > 0:
-        pad_reflect101(Pd, t, W)
-        box_row(Pd, thr_w, tda, tdb, np.float32(1.0 / (thr_w * thr_w)), thr)
-    g = Bg[v % nB]
-    b = Bb[v % nB]
-    raw_g = Lg[v % nL]
-    raw_b = Lb[v % nL]
-    # _minmax_smooth_row of both channels, in shared loops
-    if 8 <= norm_w < 16:    # (the same values without the padded copies: min/max are exact)
-        _quad_minmax2(g, b, h, s0, s1, s2, s3)
-        _minmax4_from_quads(s0, s1, s2, s3, norm_w, LOg[h:h + W], HIg[h:h + W], LOb[h:h + W], HIb[h:h + W])
-    else:
-        pg = Pg[h:h + W]
-        pb = Pb[h:h + W]
-        for u in range(W):
-            pg[u] = g[u]
-            pb[u] = b[u]
-        pad_replicate(Pg, h, W)
-        pad_replicate(Pb, h, W)
-        _slide_minmax2(Pg, Pb, norm_w, s0, s1, s2, s3, s4, s5, s6, s7, LOg, HIg, LOb, HIb, h)
-    pad_replicate(LOg, h, W)
-    pad_replicate(HIg, h, W)
-    pad_replicate(LOb, h, W)
-    pad_replicate(HIb, h, W)
-    s_norm = np.float32(1.0 / norm_w)
-    if 8 <= norm_w < 16:
-        _box4_8to15(LOg, HIg, LOb, HIb, norm_w, s0, s_norm, lo_g, hi_g, lo_b, hi_b)
-    else:
-        _box4(LOg, HIg, LOb, HIb, norm_w, s0, s1, s2, s3, s4, s5, s6, s7, s_norm, lo_g, hi_g, lo_b, hi_b)
-    _raw_hi_row(raw_g, raw_b, norm_w, Pg, ta, tb, raw_hi)
-    classify_row(g, b, Dr[v % nD], thr, lo_g, hi_g, lo_b, hi_b, raw_g, raw_b, raw_hi, rmax[v % nL], cyan_level,
-                 min_level, raw_margin, min_contrast, dark_level, saturation_level,
-                 labels[v], reason[v], gn[v], bn[v], contrast[v])
-    faint_runs_row(labels[v], reason[v], gn[v], bn[v], g, b, min_run_sep, min_run_swing, run_end_gap)
+    (Dr, rows, Pd, tda, tdb, thr, Pg, Pb, LOg, HIg, LOb, HIb, s0, s1, s2, s3, s4, s5, s6, s7, ta, tb,
+     lo_g, hi_g, lo_b, hi_b, raw_hi, rs) = _classify_scratch(W, thr_w, norm_w)
+    flat = img.reshape(img.shape[0], 3 * img.shape[1])     # rows of bytes (see _linear_row)
+    r = kh.size - 1
+    grow = np.empty(2 * r + 2, np.int64)
+    top = np.uint8(0)
+    loaded = 0
+    yb = 0                      # next blurred row
+    for y in range(H + t):
+        while stream and yb <= y and yb < H:
+            # stages "input" and 1: rows linearised into the rings Lg, Lb, rmax as the Gaussian
+            # needs them, then blurred into Bg, Bb (two rows at a time, as blur_frame)
+            while loaded <= min(H - 1, yb + 1 + r):
+                k = loaded % nL
+                top = _linear_row(flat[loaded], lut, Lg[k], Lb[k], rmax[k], top)
+                loaded += 1
+            for j in range(2 * r + 2):
+                grow[j] = reflect101(yb - r + j, H) % nL
+            if yb + 1 < H and r >= 3:
+                gauss_rows2(Lg, grow, kh, Bg[yb % nB], Bg[(yb + 1) % nB])
+                gauss_rows2(Lb, grow, kh, Bb[yb % nB], Bb[(yb + 1) % nB])
+                yb += 2
+            else:
+                gauss_rows(Lg, grow[:2 * r + 1], kh, Bg[yb % nB])
+                gauss_rows(Lb, grow[:2 * r + 1], kh, Bb[yb % nB])
+                yb += 1
+        v = y - t
+        if t > 0 and v - t - 1 >= 0 and y < H:
+            # column_sums' update step with the new row's d computed in the same loop
+            _ratio_update_row(Bg[y % nB], Bb[y % nB], sg, sb, Dr[y % nD], Dr[(v - t - 1) % nD], Pd[t:t + W])
+        else:
+            if y < H:
+                ratio_row(Bg[y % nB], Bb[y % nB], sg, sb, Dr[y % nD])
+            if t > 0 and v >= 0:
+                column_sums(Dr, v, H, thr_w, nD, rows, Pd)
+        if v < 0:
+            continue
+        if t > 0:
+            pad_reflect101(Pd, t, W)
+            box_row(Pd, thr_w, tda, tdb, np.float32(1.0 / (thr_w * thr_w)), thr)
+        g = Bg[v % nB]
+        b = Bb[v % nB]
+        raw_g = Lg[v % nL]
+        raw_b = Lb[v % nL]
+        # _minmax_smooth_row of both channels, in shared loops
+        if 8 <= norm_w < 16:    # (the same values without the padded copies: min/max are exact)
+            _quad_minmax2(g, b, h, s0, s1, s2, s3)
+            _minmax4_from_quads(s0, s1, s2, s3, norm_w, LOg[h:h + W], HIg[h:h + W], LOb[h:h + W], HIb[h:h + W])
+        else:
+            pg = Pg[h:h + W]
+            pb = Pb[h:h + W]
+            for u in range(W):
+                pg[u] = g[u]
+                pb[u] = b[u]
+            pad_replicate(Pg, h, W)
+            pad_replicate(Pb, h, W)
+            _slide_minmax2(Pg, Pb, norm_w, s0, s1, s2, s3, s4, s5, s6, s7, LOg, HIg, LOb, HIb, h)
+        pad_replicate(LOg, h, W)
+        pad_replicate(HIg, h, W)
+        pad_replicate(LOb, h, W)
+        pad_replicate(HIb, h, W)
+        s_norm = np.float32(1.0 / norm_w)
+        if 8 <= norm_w < 16:
+            _box4_8to15(LOg, HIg, LOb, HIb, norm_w, s0, s_norm, lo_g, hi_g, lo_b, hi_b)
+        else:
+            _box4(LOg, HIg, LOb, HIb, norm_w, s0, s1, s2, s3, s4, s5, s6, s7, s_norm, lo_g, hi_g, lo_b, hi_b)
+        _raw_hi_row(raw_g, raw_b, norm_w, Pg, ta, tb, raw_hi)
+        classify_row(g, b, Dr[v % nD], thr, lo_g, hi_g, lo_b, hi_b, raw_g, raw_b, raw_hi, rmax[v % nL], cyan_level,
+                     min_level, raw_margin, min_contrast, dark_level, saturation_level,
+                     labels[v], reason[v], gn[v], bn[v], contrast[v])
+        if W > 0:
+            _faint_runs_row(labels[v], reason[v], gn[v], bn[v], g, b, min_run_sep, min_run_swing, run_end_gap, rs)
+    return top
 
 
 def stream_rows(radius: int, thr_w: int) -> tuple[int, int]:
@@ -1238,7 +1278,7 @@ def stream_frame(img, lut, kh, sg, sb, thr_w, norm_w, cyan_level, min_level, raw
     of the fast path in one pass over the rows: each image row is linearised into a ring of rows
     (Rg, Rb float32, Rm uint8 raw maximum: (nL, W)), blurred into a ring (Qg, Qb: (nB, W)) as soon
     as the Gaussian's support is there, and classified as soon as its threshold window is
-    (:func:`_classify_step`).  Ring sizes from :func:`stream_rows`.  Bit-identical to
+    (:func:`_rows_1_3`).  Ring sizes from :func:`stream_rows`.  Bit-identical to
     :func:`blur_frame` + :func:`classify_frame`, without their full-size linear and blurred images
     (17 bytes/px written and read back).  Writes labels, reason, gn, bn, contrast ((H, W)); returns
     the largest raw green or blue value (0: a black frame)."""
@@ -1249,32 +1289,9 @@ def stream_frame(img, lut, kh, sg, sb, thr_w, norm_w, cyan_level, min_level, raw
     nB = Qg.shape[0]
     if nL < r + max(r, t) + 2 or nB < t + 2:
         raise ValueError("stream_frame: rings too small (see stream_rows)")
-    grow = np.empty(2 * r + 2, np.int64)
-    flat = img.reshape(H, 3 * W)
-    top = np.uint8(0)
-    loaded = 0
-    yb = 0                      # next blurred row
-    sc = _classify_scratch(W, thr_w, norm_w)
-    for y in range(H + t):
-        while yb <= y and yb < H:
-            while loaded <= min(H - 1, yb + 1 + r):
-                k = loaded % nL
-                top = _linear_row(flat[loaded], lut, Rg[k], Rb[k], Rm[k], top)
-                loaded += 1
-            for j in range(2 * r + 2):
-                grow[j] = reflect101(yb - r + j, H) % nL
-            if yb + 1 < H and r >= 3:    # two rows at a time, as blur_frame
-                gauss_rows2(Rg, grow, kh, Qg[yb % nB], Qg[(yb + 1) % nB])
-                gauss_rows2(Rb, grow, kh, Qb[yb % nB], Qb[(yb + 1) % nB])
-                yb += 2
-            else:
-                gauss_rows(Rg, grow[:2 * r + 1], kh, Qg[yb % nB])
-                gauss_rows(Rb, grow[:2 * r + 1], kh, Qb[yb % nB])
-                yb += 1
-        _classify_step(y, H, Rg, Rb, Rm, nL, Qg, Qb, nB, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin,
-                       min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, sc,
-                       labels, reason, gn, bn, contrast)
-    return top
+    return _rows_1_3(True, img, lut, kh, Rg, Rb, Rm, Qg, Qb, sg, sb, thr_w, norm_w, cyan_level, min_level,
+                     raw_margin, min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap,
+                     labels, reason, gn, bn, contrast)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

@@ -23,11 +23,13 @@ def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, re
     and agree within half a stripe with a reported vertical neighbour.  ``column_rel`` is set
     to NaN in place outside regions.
 
-    One pass over the rows (the vertical check lags one row behind, with the previous row's
-    provisional result kept in a row buffer).  Returns mask (uint8), column (float32), stripe
-    (int32), confidence (float32) (H, W) and the count of each mask code (n_codes,) int64.  A
-    reported pixel's confidence is ``conf_floor + (1 - conf_floor) * contrast term * its region's
-    marker margin``.
+    One pass over the rows: row v's provisional code, column, stripe and region margin go to a
+    ring of three row buffers; the vertical check and the final values of row v - 1 follow, each
+    output written once.  A row whose region pixels all belong to one indexed region (most rows)
+    is done branch-free (vector loops); the other rows, and the one-pixel gaps, pixel by pixel.
+    Returns mask (uint8), column (float32), stripe (int32), confidence (float32) (H, W) and the
+    count of each mask code (n_codes,) int64.  A reported pixel's confidence is
+    ``conf_floor + (1 - conf_floor) * contrast term * its region's marker margin``.
     """
     H, W = reason.shape
     mask = np.empty((H, W), np.uint8)
@@ -35,84 +37,137 @@ def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, re
     stripe = np.empty((H, W), np.int32)
     conf = np.empty((H, W), np.float32)
     counts = np.zeros(n_codes, np.int64)
-    prev_ok = np.zeros(W, np.bool_)
-    prev_col = np.zeros(W, np.float32)
-    cur_ok = np.zeros(W, np.bool_)
-    cur_col = np.zeros(W, np.float32)
+    # row buffers (row v in v % 3): provisional code, column, stripe and region margin; row 3
+    # stands for the rows above the first and below the last (no reported pixel)
+    pm = np.ones((4, W), np.uint8)
+    pc = np.zeros((4, W), np.float32)
+    ps = np.zeros((4, W), np.int32)
+    pg = np.zeros((4, W), np.float32)
+    Wp = (W + 7) & ~7
+    todo = np.zeros(Wp, np.uint8)     # the row's pixels for the pixel-by-pixel path
+    todo64 = todo.view(np.uint64)
+    ok = np.zeros(W, np.bool_)
     w = stripe_px
-    half = 0.5 * w
+    half = np.float32(0.5 * w)        # (exact: it is compared with float32 differences)
+    hw = 0.5 * (w - 1)
     inv_mc = 1.0 / max(min_contrast, 1e-3)
     conf_span = 1.0 - conf_floor
     for v in range(H + 1):
         if v < H:  # provisional result of row v
+            i = v % 3
+            r0 = np.int32(-1)
             for u in range(W):
-                m = reason[v, u]
-                mask[v, u] = m
-                if m != 0:
+                r0 = max(r0, region[v, u])
+            single = True
+            for u in range(W):
+                single &= (region[v, u] < 0) | (region[v, u] == r0)
+            if single and (r0 < 0 or reg_indexed[r0]):
+                # one indexed region (or none): branch-free with its shift and margin, the
+                # pixel-by-pixel path's operations; its one-pixel gaps are left to that path
+                shift = reg_shift[max(r0, 0)]
+                shw = shift * w
+                for u in range(W):
+                    c = column_rel[v, u] + shw
+                    k = relative[v, u] + shift
+                    code = np.uint8(5) if (abs(c - (k * w + hw)) > w) | (k < 0) | (k >= n_stripes) else np.uint8(0)
+                    code = np.uint8(7) if np.isnan(column_rel[v, u]) else code
+                    code = np.uint8(5) if inconsistent[v, u] else code
+                    code = np.uint8(4) if region[v, u] < 0 else code
+                    m = reason[v, u]
+                    pm[i, u] = code if m == 0 else m
+                for u in range(W):
+                    pc[i, u] = column_rel[v, u] + shw
+                for u in range(W):
+                    ps[i, u] = relative[v, u] + shift
+                mg = reg_margin[max(r0, 0)]
+                for u in range(W):
+                    pg[i, u] = mg
+                todo[0] = 0
+                todo[W - 1] = 0
+                for u in range(1, W - 1):
+                    todo[u] = np.uint8((region[v, u] < 0) & (region[v, u - 1] >= 0) & (region[v, u + 1] >= 0) &
+                                       (reason[v, u] == 0) & (labels[v, u] == NONE))
+            else:
+                for u in range(W):
+                    todo[u] = 1
+            # pixel by pixel (8 flags at a time skipped when none is set)
+            for wi in range(Wp >> 3):
+                if todo64[wi] == 0:
                     continue
-                r = region[v, u]
-                gap = False
-                if r < 0 and labels[v, u] == NONE and 0 < u < W - 1:
-                    rl = region[v, u - 1]
-                    # (u - 1 was not joined: a joined pixel has no region on both sides)
-                    if rl >= 0 and rl == region[v, u + 1]:
-                        r = rl
-                        region[v, u] = r
-                        gap = True
-                if r < 0:
-                    mask[v, u] = 4
-                    continue
-                if not reg_indexed[r]:
-                    mask[v, u] = 6
-                    continue
-                if inconsistent[v, u]:
-                    mask[v, u] = 5
-                    continue
-                c = column_rel[v, u]
-                if np.isnan(c):
-                    mask[v, u] = 7
-                    continue
-                c = c + reg_shift[r] * w
-                if gap:
-                    k = int(np.floor((c + 0.5) / w))
-                else:
-                    k = relative[v, u] + reg_shift[r]
-                if abs(c - (k * w + 0.5 * (w - 1))) > w or k < 0 or k >= n_stripes:
-                    mask[v, u] = 5
-                    continue
-                column[v, u] = c
-                stripe[v, u] = k
+                for u in range(wi * 8, min(wi * 8 + 8, W)):
+                    if todo[u] == 0:
+                        continue
+                    m = reason[v, u]
+                    pm[i, u] = m
+                    if m != 0:
+                        continue
+                    r = region[v, u]
+                    gap = False
+                    if r < 0 and labels[v, u] == NONE and 0 < u < W - 1:
+                        rl = region[v, u - 1]
+                        # (u - 1 was not joined: a joined pixel has no region on both sides)
+                        if rl >= 0 and rl == region[v, u + 1]:
+                            r = rl
+                            region[v, u] = r
+                            gap = True
+                    if r < 0:
+                        pm[i, u] = 4
+                        continue
+                    if not reg_indexed[r]:
+                        pm[i, u] = 6
+                        continue
+                    if inconsistent[v, u]:
+                        pm[i, u] = 5
+                        continue
+                    c = column_rel[v, u]
+                    if np.isnan(c):
+                        pm[i, u] = 7
+                        continue
+                    c = c + reg_shift[r] * w
+                    if gap:
+                        k = int(np.floor((c + 0.5) / w))
+                    else:
+                        k = relative[v, u] + reg_shift[r]
+                    if abs(c - (k * w + 0.5 * (w - 1))) > w or k < 0 or k >= n_stripes:
+                        pm[i, u] = 5
+                        continue
+                    pc[i, u] = c
+                    ps[i, u] = k
+                    pg[i, u] = reg_margin[r]
         f = v - 1
         if f < 0:
             continue
-        # row f: vertical continuity against the provisional rows f - 1 and f + 1, then final values
+        # row f: vertical continuity against the provisional rows f - 1 and f + 1, then the final
+        # values, branch-free (one array written per loop: they vectorise)
+        i = f % 3
+        iu = (f - 1) % 3 if f > 0 else 3
+        idn = (f + 1) % 3 if f + 1 < H else 3
         for u in range(W):
-            cur_ok[u] = mask[f, u] == 0
-            cur_col[u] = column[f, u]
+            c = pc[i, u]
+            ok[u] = (pm[i, u] == 0) & (((pm[iu, u] == 0) & (abs(pc[iu, u] - c) <= half)) |
+                                       ((pm[idn, u] == 0) & (abs(pc[idn, u] - c) <= half)))
         for u in range(W):
-            m = mask[f, u]
-            if m == 0:
-                c = cur_col[u]
-                ok = f > 0 and prev_ok[u] and abs(prev_col[u] - c) <= half
-                if not ok and f + 1 < H and mask[f + 1, u] == 0 and abs(column[f + 1, u] - c) <= half:
-                    ok = True
-                if not ok:
-                    m = 5
-                    mask[f, u] = 5
-            if m != 0:
-                column[f, u] = np.nan
-                stripe[f, u] = -1
-                conf[f, u] = 0.0
-            else:
-                cc = min(max((contrast[f, u] - min_contrast) * inv_mc, 0.0), 1.0)
-                conf[f, u] = conf_floor + conf_span * cc * reg_margin[region[f, u]]
-            if m < n_codes:
-                counts[m] += 1
-            if region[f, u] < 0:
-                column_rel[f, u] = np.nan
+            mask[f, u] = pm[i, u] if pm[i, u] != 0 else (np.uint8(0) if ok[u] else np.uint8(5))
         for u in range(W):
-            prev_ok[u] = cur_ok[u]
-            prev_col[u] = cur_col[u]
+            column[f, u] = pc[i, u] if ok[u] else np.float32(np.nan)
+        for u in range(W):
+            stripe[f, u] = ps[i, u] if ok[u] else np.int32(-1)
+        for u in range(W):
+            cc = min(max((contrast[f, u] - min_contrast) * inv_mc, 0.0), 1.0)
+            conf[f, u] = conf_floor + conf_span * cc * pg[i, u] if ok[u] else 0.0
+        for u in range(W):
+            column_rel[f, u] = np.float32(np.nan) if region[f, u] < 0 else column_rel[f, u]
+        # the count of each code: the row's codes as bits, then a vector count of each one there
+        bits = np.uint64(0)
+        for u in range(W):
+            bits |= np.uint64(1) << np.uint64(mask[f, u] & 63)
+        for m in range(n_codes):
+            if (bits >> np.uint64(m)) & np.uint64(1):
+                n = np.int32(0)
+                mc = np.uint8(m)
+                for u in range(W):
+                    n += np.int32(mask[f, u] == mc)
+                counts[m] += n
     return mask, column, stripe, conf, counts
 
 

@@ -8,25 +8,46 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._common import BLUE, CYAN, GREEN, NONE, copy_row, fill_row
+from ._common import BLUE, CYAN, GREEN, NONE, copy_row, ctz64, fill_row
 
 
 @njit(cache=True, nogil=True)
 def run_starts(row, rs):
     """Run-length encode one row of labels (W,) (W >= 1): the runs' first pixels into ``rs[0 ..
-    n-1]`` and ``rs[n] = W`` (rs: (W + 1,) int32); returns n.  Branch-free: every pixel stores its
-    position as the next run's start, and the count advances only where the label changes (noisy
-    rows cost no mispredicted branches)."""
+    n-1]`` and ``rs[n] = W`` (rs: (W + 1,) int32); returns n.  64 pixel pairs at a time: a bit
+    mask of the label changes (a vector loop), then one step per change, its position the mask's
+    trailing-zero count (as ``linking._key_runs``); the row's last block is the 64 pairs that end
+    it, less those the block before took.  Rows under 65 px: branch-free, pixel by pixel."""
     W = row.size
     rs[0] = 0
-    nr = 1
-    a = row[:W - 1]
+    n = np.uint64(1)
+    m1 = W - 1            # pixel pairs (u, u + 1)
+    a = row[:m1]
     b = row[1:]
-    for u in range(W - 1):
-        rs[nr] = u + 1
-        nr += np.int64(a[u] != b[u])
-    rs[nr] = W
-    return nr
+    if m1 >= 64:
+        base = 0
+        while base < m1:
+            lo = 0
+            if base + 64 > m1:     # the last block: pairs base - lo .. base - 1 are done
+                lo = base - (m1 - 64)
+                base = m1 - 64
+            A = a[base:base + 64]
+            B = b[base:base + 64]
+            m = np.uint64(0)
+            for t in range(64):
+                m |= np.uint64(A[t] != B[t]) << np.uint64(t)
+            m = (m >> np.uint64(lo)) << np.uint64(lo)
+            while m != np.uint64(0):
+                rs[n] = base + ctz64(m) + 1
+                n += np.uint64(1)
+                m &= m - np.uint64(1)
+            base += 64
+    else:
+        for u in range(m1):
+            rs[n] = u + 1
+            n += np.uint64(a[u] != b[u])
+    rs[n] = W
+    return np.int64(n)
 
 
 @njit(cache=True, nogil=True)
@@ -196,6 +217,34 @@ def _marker_flank_pass(rs, re, rl, nr, limit_px, max_gap_px, end_flank=False):
 
 
 @njit(cache=True, nogil=True)
+def _fill_runs(sr, rr, re, nr, run_s, run_r):
+    # every pixel of the row gets its run's segment and index, run by run in order (the runs
+    # partition the row).  8 pixels at a time (a vector store each; the last 8 reach into the runs
+    # after, which overwrite them), pixel by pixel within 8 px of the row's end
+    W = np.uint64(sr.size)
+    a = np.uint64(0)
+    for k in range(nr):
+        s = run_s[k]
+        r = run_r[k]
+        b = np.uint64(re[k]) + np.uint64(1)
+        if b + np.uint64(8) <= W:
+            u = a
+            while True:
+                for t in range(8):   # (two loops: one vector store each)
+                    sr[u + np.uint64(t)] = s
+                for t in range(8):
+                    rr[u + np.uint64(t)] = r
+                u += np.uint64(8)
+                if u >= b:
+                    break
+        else:
+            for u in range(a, b):
+                sr[u] = s
+                rr[u] = r
+        a = b
+
+
+@njit(cache=True, nogil=True)
 def row_segments(labels, max_gap_px, spike_px, marker_flank_px=0, end_flank=False):
     """Paper step 1 kernel: unroll each row by the transitions along it.
 
@@ -235,16 +284,14 @@ def row_segments(labels, max_gap_px, spike_px, marker_flank_px=0, end_flank=Fals
     rs = np.empty(W + 1, np.int32)
     re = np.empty(W, np.int32)
     rl = np.empty(W, np.uint8)
+    run_s = np.empty(W, np.int32)   # per run of the row: its segment (-1 none) and relative index
+    run_r = np.empty(W, np.int32)
     ns = 0
     nj = 0
     for v in range(H):
-        sr = seg[v]
-        rr = rel[v]
-        sr[:] = -1
-        rr[:] = 0
         if W == 0:
             continue
-        # -- run-length encode the row (branch-free)
+        # -- run-length encode the row (64 pixels at a time)
         lrow = labels[v]
         nr = run_starts(lrow, rs)
         for k in range(nr - 1):
@@ -261,7 +308,10 @@ def row_segments(labels, max_gap_px, spike_px, marker_flank_px=0, end_flank=Fals
         # -- mixed pixels beside a marker classified as the other colour (X Y C X -> X C X)
         if marker_flank_px > 0:
             nr = _marker_flank_pass(rs, re, rl, nr, marker_flank_px, max_gap_px, end_flank)
-        # -- walk runs into segments
+        # -- walk runs into segments (each run's segment and index; its pixels after the walk)
+        for k in range(nr):
+            run_s[k] = -1
+            run_r[k] = 0
         k = 0
         while k < nr:
             if rl[k] == NONE:
@@ -273,6 +323,7 @@ def row_segments(labels, max_gap_px, spike_px, marker_flank_px=0, end_flank=Fals
             seg_row[s] = v
             seg_u0[s] = rs[k]
             seg_j0[s] = nj
+            k0 = k
             # relative index of the first run: parity from its colour (cyan: from the next run)
             lab0 = rl[k]
             par_known = 0
@@ -293,9 +344,8 @@ def row_segments(labels, max_gap_px, spike_px, marker_flank_px=0, end_flank=Fals
                         r = 1  # cyan at odd, next green at even
                     else:
                         r = 0
-            for uu in range(rs[k], re[k] + 1):
-                sr[uu] = s
-                rr[uu] = r
+            run_s[k] = s
+            run_r[k] = r
             last = k
             k += 1
             while k < nr:
@@ -316,9 +366,9 @@ def row_segments(labels, max_gap_px, spike_px, marker_flank_px=0, end_flank=Fals
                     if (r_new & 1) != want:
                         if par_known == 0:
                             # only cyan so far: shift the segment's indices by one
-                            for uu in range(seg_u0[s], re[gap_end] + 1):
-                                if sr[uu] == s:
-                                    rr[uu] += 1
+                            for kk in range(k0, gap_end + 1):
+                                if run_s[kk] == s:
+                                    run_r[kk] += 1
                             for jj in range(seg_j0[s], nj):
                                 j_rel[jj] += 1
                             r += 1
@@ -335,15 +385,15 @@ def row_segments(labels, max_gap_px, spike_px, marker_flank_px=0, end_flank=Fals
                 j_rel[nj] = r_new
                 nj += 1
                 r = r_new
-                for uu in range(rs[cand], re[cand] + 1):
-                    sr[uu] = s
-                    rr[uu] = r
+                run_s[cand] = s
+                run_r[cand] = r
                 last = cand
                 k = cand + 1
             seg_u1[s] = re[last]
             seg_j1[s] = nj
             seg_par[s] = par_known
             k = last + 1
+        _fill_runs(seg[v], rel[v], re, nr, run_s, run_r)
     return (seg, rel, seg_row[:ns].copy(), seg_u0[:ns].copy(), seg_u1[:ns].copy(), seg_j0[:ns].copy(),
             seg_j1[:ns].copy(), seg_par[:ns].copy(), j_seg[:nj].copy(), j_ua[:nj].copy(), j_ub[:nj].copy(),
             j_la[:nj].copy(), j_lb[:nj].copy(), j_rel[:nj].copy())
