@@ -2471,3 +2471,70 @@ def test_finish_pixels_equals_its_rules_written_plainly(seed):
     assert (m == 0).sum() > 100 and {4, 5, 6, 7} <= set(np.unique(m))
     joined = (args[2] < 0) & (a[2] >= 0)
     assert joined.any()
+
+
+def _ab_script():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "ab_decode.py"
+    spec = importlib.util.spec_from_file_location("ab_decode", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_ab_script_alternates_and_compares_results():
+    """scripts/ab_decode.py's parts that need no git: calls alternate ab, ba, ab, ...; results are
+    compared map by map (NaN equal to NaN) and by their stats without the timings."""
+    ab = _ab_script()
+    calls = []
+    ta, tb, ra, rb = ab.alternate(lambda: calls.append("a") or 1, lambda: calls.append("b") or 2, 4,
+                                  clock=lambda: len(calls))
+    assert "".join(calls) == "abbaabba" and ra == [1] * 4 and rb == [2] * 4
+    assert ta.shape == tb.shape == (4,) and (ta == 1e3).all()
+    spec = PatternSpec()
+    img = render("plane", distance_mm=650).image
+    a, b = decode(img, spec), decode(img, spec)
+    assert a.valid.any() and ab.same_results(a, b) == (True, True)
+    b.stats["ms"]["total"] = 1e9                      # timings are not results
+    assert ab.same_results(a, b) == (True, True)
+    b.column[b.valid] += 1e-3
+    assert ab.same_results(a, b) == (False, True)
+    b = decode(img, spec)
+    b.stats["regions_indexed"] += 1
+    assert ab.same_results(a, b) == (True, False)
+    text = ab.report("plane", np.array([10.0, 12.0]), np.array([9.0, 9.6]), [a, a], [a, a], True, False)
+    assert "median ratio of pairs new/old 0.850" in text and "stats DIFFERENT" in text
+
+
+def test_ab_script_extracts_a_revision_beside_the_checkout(tmp_path):
+    """A revision extracted by git archive imports as a package of its own name, without pulling
+    in the checkout's gbscan modules; an unknown revision is refused by name."""
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    if shutil.which("git") is None or not (root / ".git").exists():
+        pytest.skip("needs the project's git repository")
+    if subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True).returncode:
+        pytest.skip("the repository has no commit")
+    ab = _ab_script()
+    with pytest.raises(ValueError, match="'no-such-rev' is not a commit"):
+        ab.resolve("no-such-rev")
+    with pytest.raises(SystemExit):
+        ab.main(["--base", "no-such-rev"])
+    sha = ab.resolve("HEAD")
+    folder, name = ab.extract(sha, tmp_path)
+    assert name == f"gbscan_{sha[:12]}" and (folder / name / "decode.py").exists()
+    assert ab.extract(sha, tmp_path) == (folder, name)                   # once: kept
+    try:
+        dec, pat = ab.import_decoder(folder, name)
+        assert Path(dec.__file__).is_relative_to(tmp_path) and dec.__name__ == f"{name}.decode"
+        assert pat.PatternSpec().stripe_px == PatternSpec().stripe_px
+    finally:
+        sys.path.remove(str(folder))
+        for m in [m for m in sys.modules if m == name or m.startswith(name + ".")]:
+            del sys.modules[m]
