@@ -1331,22 +1331,26 @@ def _rim_rule_rows(column_rel, region, reg_off_px, reason, done, changed_rows, p
     """:func:`rim_rule` on ``reason`` where its result ``done`` for other inputs is known: the rule
     at row ``v`` reads rows ``v - h .. v + h`` only (``h`` its half window), so ``done`` (updated
     in place and returned) is recomputed on the rows within ``h`` of ``changed_rows`` (sorted,
-    the rows where the inputs differ), each band with ``h`` rows of context on either side."""
+    the rows where the inputs differ; repeats allowed), each band with ``h`` rows of context on either side."""
+    from . import kernels
+
     H = reason.shape[0]
     h = max(1, int(round(math.sqrt(3.0) * _sigma_along(params))))
-    hit = np.zeros(H + 1, np.int32)
-    np.add.at(hit, np.clip(changed_rows - h, 0, H), 1)
-    np.add.at(hit, np.clip(changed_rows + h + 1, 0, H), -1)
-    redo = np.flatnonzero(np.cumsum(hit[:H]) > 0)
-    if redo.size == 0:
-        return done
-    cut = np.flatnonzero(np.diff(redo) > 1)
-    for a, b in zip(redo[np.r_[0, cut + 1]], redo[np.r_[cut, redo.size - 1]]):
-        lo, hi = max(int(a) - h, 0), min(int(b) + h, H - 1) + 1
+    # the bands of rows within h of a changed row (maximal runs of consecutive rows)
+    first, last = kernels.row_bands(np.asarray(changed_rows, dtype=np.int64), h, H)
+    for a, b in zip(first.tolist(), last.tolist()):
+        lo, hi = max(a - h, 0), min(b + h, H - 1) + 1
         band = reason[lo:hi].copy()
         rim_rule(column_rel[lo:hi], region[lo:hi], reg_off_px, band, params)
         done[a:b + 1] = band[a - lo:b + 1 - lo]
     return done
+
+
+def _grow(a: np.ndarray, n: int) -> np.ndarray:
+    # ``np.r_[a, np.zeros(n - a.size, np.int64)]`` (the int64 arrays of the regions, extended)
+    out = np.zeros(n, np.result_type(a.dtype, np.int64))
+    out[:a.size] = a
+    return out
 
 
 def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: PatternSpec, params: DecodeParams,
@@ -1399,21 +1403,24 @@ def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: Patt
         # rows of the segments whose region or region offset the linking changed (the rim rule's
         # inputs differ only there)
         linked_seg = (lk.seg_region >= 0) & lk.linked[np.maximum(lk.seg_region, 0)]
-        memo["changed_rows"] = np.unique(segs.row[changed | linked_seg])
+        # (segments are numbered row by row: their rows come sorted; repeats are harmless to
+        # _rim_rule_rows, so no np.unique)
+        memo["changed_rows"] = segs.row[changed | linked_seg]
     un.seg_region = lk.seg_region
     un.inconsistent = inconsistent
     n_new = int(lk.offset.size)
     ext = n_new - n_reg
     votes = np.maximum(lk.votes + lk.dissent, 1)
     # a linked region's margin: half of a marker-indexed one's, scaled by its vote agreement
-    evidence = np.where(lk.linked, 2 * votes, np.r_[idx.evidence, np.zeros(ext, np.int64)])
-    mismatch = np.where(lk.linked, 0, np.r_[idx.mismatch, np.zeros(ext, np.int64)])
-    runner_up = np.where(lk.linked, lk.votes, np.r_[idx.runner_up, np.zeros(ext, np.int64)])
+    evidence = np.where(lk.linked, 2 * votes, _grow(idx.evidence, n_new))
+    mismatch = np.where(lk.linked, 0, _grow(idx.mismatch, n_new))
+    runner_up = np.where(lk.linked, lk.votes, _grow(idx.runner_up, n_new))
     idx.offset, idx.indexed = lk.offset, lk.indexed
     idx.evidence, idx.mismatch, idx.runner_up = evidence, mismatch, runner_up
-    idx.markers_seen = np.r_[idx.markers_seen, np.zeros(ext, np.int64)]
-    idx.why = [("linked" if lk.linked[k] else idx.why[k]) for k in range(n_reg)] + ["linked"] * ext
-    un.region_px = np.r_[un.region_px, np.zeros(ext, np.int64)]
+    idx.markers_seen = _grow(idx.markers_seen, n_new)
+    linked = lk.linked.tolist()
+    idx.why = [("linked" if linked[k] else idx.why[k]) for k in range(n_reg)] + ["linked"] * ext
+    un.region_px = _grow(un.region_px, n_new)
     un.stats["regions_linked"] = int(lk.linked.sum())
     return n_new
 
@@ -1559,10 +1566,13 @@ def lit_window(image_rgb: np.ndarray, params: DecodeParams, radius: int, thr_w: 
 def _paste(window: tuple, shape: tuple, fill, a: np.ndarray) -> np.ndarray:
     # a window's map (h, w) in a frame-size map filled with ``fill`` (what the whole frame's
     # decode gives its dark pixels)
+    from . import kernels
+
     y0, y1, x0, x1 = window
-    out = np.full(shape, fill, a.dtype)
-    out[y0:y1, x0:x1] = a
-    return out
+    if a.shape != (y1 - y0, x1 - x0):
+        raise GBError(f"_paste: a {a.shape} map for the window {window}")
+    # (np.full, then the window copied: every window pixel written twice; compiled: once)
+    return kernels.paste_window(a, int(shape[0]), int(shape[1]), int(y0), int(x0), a.dtype.type(fill))
 
 
 #: what the whole frame's decode gives a dark pixel, map by map
@@ -1954,7 +1964,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     stats.update(un.stats)
     stats["regions_indexed"] = int(idx.indexed.sum())
     stats["regions_unindexed"] = int(n_reg - idx.indexed.sum())
-    stats["region_why"] = dict(sorted(collections.Counter(str(w) for w in idx.why).items())) if n_reg else {}
+    stats["region_why"] = dict(sorted(collections.Counter(map(str, idx.why)).items())) if n_reg else {}
     stats["boundaries"] = int(np.isfinite(jx).sum())
     stats["weld_retry_px"], stats["weld_split_px"] = retry_gain, split_gain
     # of the "rim" pixels: masked by the guard rows (rim_guard) and by the brightness-step guard

@@ -466,7 +466,7 @@ def relate_rows(labels: np.ndarray, segs: Segments) -> Edges:
 
 
 # -- step 3 -------------------------------------------------------------------------------------
-def believable_segments(segs: Segments, edges: Edges, p: UnwrapParams) -> np.ndarray:
+def believable_segments(segs: Segments, edges: Edges, p: UnwrapParams, *, strong=None) -> np.ndarray:
     """Step 3, *determine believable rows*: (n_seg,) bool.
 
     A segment is believable when it is linked by strong edges (enough agreeing votes, few
@@ -474,11 +474,12 @@ def believable_segments(segs: Segments, edges: Edges, p: UnwrapParams) -> np.nda
     or blue run (parity known), and none of its edges to the row above or below is a strong
     disagreement (an edge with many votes but a low agreement fraction means part of the segment
     is shifted: an inserted or lost stripe) -- :meth:`Edges.disputed` -- and it holds at least
-    ``min_believable_junctions`` stripe boundaries.
+    ``min_believable_junctions`` stripe boundaries.  ``strong`` (optional): ``edges.strong(p)``.
     """
     from . import kernels
 
-    strong = edges.strong(p)
+    if strong is None:
+        strong = edges.strong(p)
     chain = kernels.chain_lengths(segs.n, edges.s, edges.t, strong)
     ok = (chain >= p.n_ref_rows) & (segs.parity > 0)
     # a segment with fewer than ``min_believable_junctions`` boundaries holds no complete stripe:
@@ -494,11 +495,15 @@ def believable_segments(segs: Segments, edges: Edges, p: UnwrapParams) -> np.nda
 
 # -- steps 4 and 6 ------------------------------------------------------------------------------
 def _edge_order(edges: Edges) -> np.ndarray:
-    # strongest first: most agreeing votes, then fewest dissenting ones
-    return np.lexsort((edges.n_same - edges.n_agree, -edges.n_agree)).astype(np.int64)
+    # strongest first: most agreeing votes, then fewest dissenting ones (the lexsort
+    # ``np.lexsort((n_same - n_agree, -n_agree))``, compiled)
+    from . import kernels
+
+    return kernels.edge_order(edges.n_agree, edges.n_same)
 
 
-def link_believable(segs: Segments, edges: Edges, believable: np.ndarray, p: UnwrapParams):
+def link_believable(segs: Segments, edges: Edges, believable: np.ndarray, p: UnwrapParams, *, strong=None,
+                    order=None):
     """Step 4, *unroll each pixel by relation with its upper neighbour in believable rows*.
 
     Two stages, so that one lucky row pair never welds two surfaces together (at a horizontal
@@ -511,7 +516,8 @@ def link_believable(segs: Segments, edges: Edges, believable: np.ndarray, p: Unw
        most support first; an edge contradicting what is already fixed is a conflict.
 
     Every pixel of a region then gets ``rel + P[segment]``, consistent with its upper neighbour.
-    Returns the union-find state ``(parent, pot, size, conflicts)``.
+    Returns the union-find state ``(parent, pot, size, conflicts)``.  ``strong`` and ``order``
+    (optional): ``edges.strong(p)`` and :func:`_edge_order` when the caller has them.
     """
     from . import kernels
 
@@ -520,48 +526,13 @@ def link_believable(segs: Segments, edges: Edges, believable: np.ndarray, p: Unw
     pot = np.zeros(n, np.int32)
     size = np.ones(n, np.int32)
     conflicts = np.zeros(n, np.int32)
-    strong = edges.strong(p) & believable[edges.s] & believable[edges.t]
-    ids = np.flatnonzero(strong)
-    if ids.size == 0:
-        return parent, pot, size, conflicts
-    # a. mutual best edges -> strips
-    score = edges.n_agree[ids].astype(np.int64) * 4096 - (edges.n_same[ids] - edges.n_agree[ids])
-    best_up = np.full(n, -1, np.int64)
-    best_dn = np.full(n, -1, np.int64)
-    o = np.argsort(score, kind="stable")  # ascending: the last write wins -> best
-    best_up[edges.s[ids[o]]] = ids[o]
-    best_dn[edges.t[ids[o]]] = ids[o]
-    mutual = np.zeros(edges.s.size, bool)
-    mutual[ids] = (best_up[edges.s[ids]] == ids) & (best_dn[edges.t[ids]] == ids)
-    kernels.link_segments(parent, pot, size, conflicts, edges.s, edges.t, edges.offset, _edge_order(edges),
-                          mutual, believable, False)
-    root, P = kernels.resolve_roots(parent, pot)
-    # b. merge strips by consensus of the other strong edges
-    rest = ids[~mutual[ids]]
-    if rest.size:
-        A = root[edges.s[rest]].astype(np.int64)
-        B = root[edges.t[rest]].astype(np.int64)
-        delta = edges.offset[rest].astype(np.int64) - P[edges.s[rest]] + P[edges.t[rest]]
-        inside = A == B
-        conflicts_inside = rest[inside & (delta != 0)]
-        np.add.at(conflicts, edges.s[conflicts_inside], 1)
-        np.add.at(conflicts, edges.t[conflicts_inside], 1)
-        A, B, delta = A[~inside], B[~inside], delta[~inside]
-        swap = A > B
-        A, B = np.where(swap, B, A), np.where(swap, A, B)
-        delta = np.where(swap, -delta, delta)
-        if A.size:
-            key = (A * n + B) * 8192 + (delta + 4096)
-            ukey, cnt = np.unique(key, return_counts=True)
-            pair = ukey // 8192
-            upair, inv = np.unique(pair, return_inverse=True)
-            tot = np.bincount(inv, weights=cnt)
-            ok = (cnt >= p.n_ref_rows) & (cnt >= p.agree_frac * tot[inv])
-            pa = (pair // n).astype(np.int32)
-            pb = (pair % n).astype(np.int32)
-            pdelta = (ukey % 8192 - 4096).astype(np.int32)
-            order = np.argsort(-cnt, kind="stable").astype(np.int64)
-            kernels.link_segments(parent, pot, size, conflicts, pa, pb, pdelta, order, ok, believable, False)
+    if strong is None:
+        strong = edges.strong(p)
+    strong = strong & believable[edges.s] & believable[edges.t]
+    # both stages in one kernel (mutual best edges, then the strips' (pair, offset) consensus)
+    kernels.link_strips(parent, pot, size, conflicts, edges.s, edges.t, edges.offset, edges.n_agree, edges.n_same,
+                        _edge_order(edges) if order is None else order, strong, believable,
+                        int(p.n_ref_rows), float(p.agree_frac))
     return parent, pot, size, conflicts
 
 
@@ -651,19 +622,21 @@ def _unlocated_cut_mask(segs: Segments, ratio: float, pre=None):
     return cut if cut.any() else None
 
 
-def attach_doubtful(segs: Segments, edges: Edges, believable: np.ndarray, state, p: UnwrapParams):
+def attach_doubtful(segs: Segments, edges: Edges, believable: np.ndarray, state, p: UnwrapParams, *, strong=None,
+                    order=None):
     """Step 6, *unroll every row by relation with the upper neighbour* (and the lower one).
 
     Each doubtful segment (piece) joins at most one region, through its strongest strong edge
     to a believable segment; further edges only check it (a disagreement is a conflict).  Two
     regions are never merged through a doubtful segment.  Updates ``state`` in place.
+    ``strong``, ``order`` (optional): ``edges.strong(p)`` and :func:`_edge_order` when at hand.
     """
     from . import kernels
 
     parent, pot, size, conflicts = state
-    use = edges.strong(p) & (believable[edges.s] != believable[edges.t])
-    kernels.link_segments(parent, pot, size, conflicts, edges.s, edges.t, edges.offset, _edge_order(edges), use,
-                          believable, True)
+    use = (edges.strong(p) if strong is None else strong) & (believable[edges.s] != believable[edges.t])
+    kernels.link_segments(parent, pot, size, conflicts, edges.s, edges.t, edges.offset,
+                          _edge_order(edges) if order is None else order, use, believable, True)
     return state
 
 
@@ -742,12 +715,18 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
         if sever_px.shape != labels.shape:
             raise GBError(f"unwrap: sever_px must be a {labels.shape} bool array, got {sever_px.shape}")
     edges1 = _sever(relate_rows(labels, segs1), segs1, sever_px)          # 2
-    bel1 = believable_segments(segs1, edges1, p)                          # 3
+    strong1 = edges1.strong(p)
+    bel1 = believable_segments(segs1, edges1, p, strong=strong1)          # 3
     segs = split_doubtful(labels, segs1, bel1, p)                         # 5 (pieces)
-    edges = _sever(relate_rows(labels, segs), segs, sever_px) if segs is not segs1 else edges1
-    bel = believable_segments(segs, edges, p) if segs is not segs1 else bel1
-    state = link_believable(segs, edges, bel, p)                          # 4
-    attach_doubtful(segs, edges, bel, state, p)                           # 6
+    if segs is not segs1:
+        edges = _sever(relate_rows(labels, segs), segs, sever_px)
+        strong = edges.strong(p)
+        bel = believable_segments(segs, edges, p, strong=strong)
+    else:
+        edges, strong, bel = edges1, strong1, bel1
+    order = _edge_order(edges)   # (steps 4 and 6 take the same edges strongest first)
+    state = link_believable(segs, edges, bel, p, strong=strong, order=order)   # 4
+    attach_doubtful(segs, edges, bel, state, p, strong=strong, order=order)    # 6
     from . import kernels
 
     parent, pot, size, conflicts = state
@@ -823,7 +802,9 @@ _SCORE_COMPILED = True
 def _margin_px(params: UnwrapParams, evidence, seen):
     """Pixels by which the runner-up offset must mismatch more than the best: ``index_margin`` of
     the evidence, or ``index_margin_events`` marker events (evidence / (2 seen) px each) when less.
-    Scalars give a float; arrays (one entry per region) an array."""
+    Scalars give a float; arrays (one entry per region) an array.  The indexing computes it
+    compiled, in :func:`gbscan.kernels.index_tests`; this is the readable form the tests compare
+    it with."""
     ev, seen = np.broadcast_arrays(np.asarray(evidence, dtype=np.float64), np.asarray(seen))
     m = params.index_margin * ev
     if params.index_margin_events > 0:
@@ -845,12 +826,12 @@ def _index_tests(params: UnwrapParams, status, seen, evidence, mismatch, runner_
     offset outside the working volume (status 4), 3 too few markers seen, 4 the best offset
     mismatches too much (:data:`MISFIT`), 5 the runner-up is not clearly worse (:data:`AMBIGUOUS`).
     :func:`index_regions` and :func:`split_row` both decide by it."""
-    status, seen, evidence, mismatch, runner_up = (np.asarray(a) for a in (status, seen, evidence, mismatch,
-                                                                           runner_up))
-    return np.select([status < 3, status == 4, seen < params.min_markers,
-                      mismatch > params.max_mismatch * evidence,
-                      runner_up - mismatch < _margin_px(params, evidence, seen)],
-                     [1, 2, 3, 4, 5], 0).astype(np.int8)
+    from . import kernels
+
+    # compiled (kernels.index_tests): the np.select of the five tests, with _margin_px's margin
+    return kernels.index_tests(*(np.asarray(a) for a in (status, seen, evidence, mismatch, runner_up)),
+                               int(params.min_markers), float(params.max_mismatch), float(params.index_margin),
+                               float(params.index_margin_events))
 
 
 def _index_why(code: int, status: int, seen: int, params: UnwrapParams) -> str:
@@ -1179,49 +1160,32 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
         col_abs = col_abs()
     vc, vr, vl, vv = kernels.link_votes(comp, cr, np.ascontiguousarray(col_abs, dtype=np.float32),
                                         int(params.link_gap_px))
-    stats["components_tried"] = int(np.unique(vc).size)
     if vc.size == 0:
+        stats["components_tried"] = 0
         return empty
     period = 2.0 * w
     k = np.round(vr / period).astype(np.int64)
     good = np.abs(vr - k * period) <= float(params.link_tol_px)
-    n_all = np.bincount(vc, minlength=segs.n)
-    # agreeing votes per (component, offset) and their distinct lines; the best offset per component
-    gc, gk, gl, gv = vc[good].astype(np.int64), k[good], vl[good].astype(np.int64), vv[good].astype(np.int64)
+    # agreeing votes per (component, offset), their distinct lines and rows; the best offset per
+    # component (one compiled group-by: kernels.best_vote_offsets)
+    n_all, tried, bc, bk, bcnt, b_lines, b_rows = kernels.best_vote_offsets(
+        vc, k, good, vl, vv, segs.n, int(segs.seg.shape[0]), int(segs.seg.shape[1]))
+    stats["components_tried"] = int(tried)
     accept_c = np.zeros(0, np.int64)
     accept_k = accept_n = accept_c
-    if gc.size:
-        kk0 = gk - gk.min()
-        span = int(kk0.max()) + 1
-        pair = gc * span + kk0
-        pairs, cnt = np.unique(pair, return_counts=True)
-        H1 = int(segs.seg.shape[0]) + 1  # lines are in [-H, W): a key per (pair, line)
-        line_key = np.unique(pair * (H1 + int(segs.seg.shape[1])) + (gl + H1))
-        _, n_lines = np.unique(line_key // (H1 + int(segs.seg.shape[1])), return_counts=True)  # as ``pairs``
-        # distinct rows of the voting candidate pixels (``link_rows``)
-        _, n_rows = np.unique(np.unique(pair * H1 + gv) // H1, return_counts=True)  # as ``pairs``
-        pc, pk = pairs // span, pairs % span + gk.min()
-        o = np.lexsort((-cnt, pc))
-        first = np.r_[True, np.diff(pc[o]) != 0]
-        b = o[first]
+    if bc.size:
         # rows each component spans: a tall one needs votes from ``link_rows`` rows
-        r_lo = np.full(segs.n, np.iinfo(np.int64).max, np.int64)
-        r_hi = np.full(segs.n, -1, np.int64)
-        cs = seg_comp >= 0
-        rows_cs = segs.row[cs].astype(np.int64)  # the dtype of r_lo/r_hi: ufunc.at's fast path (mixed: ~1 ms)
-        np.minimum.at(r_lo, seg_comp[cs], rows_cs)
-        np.maximum.at(r_hi, seg_comp[cs], rows_cs)
-        tall = (r_hi[pc[b]] - r_lo[pc[b]] + 1) > params.link_reach_rows
-        ok = ((cnt[b] >= params.link_votes) & (n_lines[b] >= params.link_lines)
-              & ((n_rows[b] >= params.link_rows) | ~tall)
-              & (cnt[b] >= params.link_agree_frac * n_all[pc[b]]))
-        accept_c, accept_k, accept_n = pc[b][ok], pk[b][ok], cnt[b][ok]
-        few_rows = (tall & (n_rows[b] < params.link_slope_below_rows))[ok] if params.link_slope_below_rows > 0 \
+        height = kernels.component_row_span(seg_comp, segs.row, bc)
+        tall = height > params.link_reach_rows
+        ok = ((bcnt >= params.link_votes) & (b_lines >= params.link_lines)
+              & ((b_rows >= params.link_rows) | ~tall)
+              & (bcnt >= params.link_agree_frac * n_all[bc]))
+        accept_c, accept_k, accept_n = bc[ok], bk[ok], bcnt[ok]
+        few_rows = (tall & (b_rows < params.link_slope_below_rows))[ok] if params.link_slope_below_rows > 0 \
             else np.ones(accept_c.size, bool)
         if params.link_hang_rows > 0:
             # a shorter component hanging from one row of votes: the contact of a lined-up weld
-            height = r_hi[pc[b]] - r_lo[pc[b]] + 1
-            few_rows |= (~tall & (height > params.link_hang_rows) & (n_rows[b] == 1))[ok]
+            few_rows |= (~tall & (height > params.link_hang_rows) & (b_rows == 1))[ok]
         if params.link_slope_tol > 0 and few_rows.any():
             # across a horizontal depth edge the columns may continue (an even stripe shift) but
             # the column's slope along the row does not (another distance)
@@ -1269,8 +1233,10 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
     mv = (seg_comp >= 0) & (comp_region[np.maximum(seg_comp, 0)] >= 0)
     seg_region[mv] = comp_region[seg_comp[mv]]
     r_acc = comp_region[accept_c]
-    offset = np.r_[idx.offset.astype(np.int64), np.zeros(n_new, np.int64)]
-    indexed = np.r_[idx.indexed, np.zeros(n_new, bool)]
+    offset = np.zeros(n_tot, np.int64)     # the regions' arrays extended by the new ones
+    offset[:n_reg] = idx.offset
+    indexed = np.zeros(n_tot, bool)
+    indexed[:n_reg] = idx.indexed
     linked = np.zeros(n_tot, bool)
     votes = np.zeros(n_tot, np.int64)
     dissent = np.zeros(n_tot, np.int64)

@@ -1906,6 +1906,97 @@ def test_step_guard_masks_the_dim_side_of_a_step_near_the_stretch_end():
     assert _step_case(bright + dim, [0] * 22 + [-1] + [0] * 7).size == 0                  # two stretches
 
 
+def _step_guard_reference(img, lut, box, region, mask, column, stripe, conf, reach, ratio, half, flat, ok, code):
+    """``kernels.step_guard``'s rules in plain Python (float32 sums in the same order)."""
+    H, W = region.shape
+    h = box // 2
+
+    def bright(v, u):
+        lo, hi = max(u - h, 0), min(u + h, W - 1)
+        s = np.float32(0.0)
+        for x in range(lo, hi + 1):
+            s += lut[img[v, x, 1]] + lut[img[v, x, 2]]
+        return s / np.float32(hi - lo + 1)
+
+    def step(bright_rows, dim_rows, u):
+        # brighter by more than ratio (sums over half rows each), the dim side flat
+        sa = np.float32(0.0)
+        for k in bright_rows:
+            sa += bright(k, u)
+        sb, lo, hi = np.float32(0.0), np.float32(np.inf), np.float32(0.0)
+        for k in dim_rows:
+            x = bright(k, u)
+            sb += x
+            lo, hi = min(lo, x), max(hi, x)
+        return sa > ratio * sb and hi <= flat * lo
+
+    to_mask = np.zeros((H, W), bool)
+    for u in range(W):
+        v = 0
+        while v < H:
+            a = v
+            while v < H and region[v, u] == region[a, u]:
+                v += 1
+            b = v - 1                                    # a run a..b of one region
+            if region[a, u] < 0:
+                continue
+            ts = [t for t in range(a + half + 1, b - half + 1)]
+            below = [t for t in ts if b - t + 1 <= reach
+                     and step(range(t - 1 - half, t - 1), range(t + 1, t + 1 + half), u)]
+            # (the kernel runs this test reach + half + 1 rows into the run, or at its end: never
+            # for a run that starts fewer rows than that above the image's bottom)
+            above = [t for t in ts if t - a <= reach and a + reach + half + 1 <= H
+                     and step(range(t + 1, t + 1 + half), range(t - 1 - half, t - 1), u)]
+            if below:
+                to_mask[min(below) - 1:b + 1, u] = True   # the lowest boundary: rows t - 1 .. b
+            if above:
+                to_mask[a:max(above) + 1, u] = True       # the highest: rows a .. t
+    hit = to_mask & (mask == ok)
+    mask[hit] = code
+    column[hit] = np.nan
+    stripe[hit] = -1
+    conf[hit] = 0.0
+    return int(hit.sum())
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_step_guard_equals_its_rules_written_plainly(seed):
+    """kernels.step_guard (row-major, run ends found 64 columns at a time, the brightness of a
+    column's rows summed side by side) against its rules in plain Python, on random images of
+    banded brightness with noise, random region runs (holes, several regions) and masks."""
+    from gbscan import kernels
+    from gbscan.decode import gamma_lut
+
+    rng = np.random.default_rng(seed)
+    lut = gamma_lut(2.2)
+    n_hit = 0
+    for _ in range(12):
+        H, W = int(rng.integers(8, 40)), int(rng.integers(1, 90))
+        levels = np.repeat(rng.choice([40, 90, 150, 220], H // 3 + 1), 3)[:H]
+        img = np.clip(levels[:, None, None] + rng.integers(-4, 5, (H, W, 3)), 0, 255).astype(np.uint8)
+        region = np.full((H, W), -1, np.int32)
+        for _ in range(rng.integers(1, 5)):
+            v0, v1 = np.sort(rng.integers(0, H + 1, 2))
+            u0, u1 = np.sort(rng.integers(0, W + 1, 2))
+            region[v0:v1, u0:u1] = rng.integers(-1, 3)
+        region[rng.random((H, W)) < 0.02] = -1
+        mask = rng.choice(np.array([OK, OK, OK, DARK], np.uint8), (H, W))
+        column = np.where(mask == OK, rng.random((H, W)) * 100, np.nan).astype(np.float32)
+        stripe = np.where(mask == OK, rng.integers(0, 50, (H, W)), -1).astype(np.int32)
+        conf = np.where(mask == OK, rng.random((H, W)), 0).astype(np.float32)
+        box, reach, half = int(rng.choice([1, 3, 7])), int(rng.integers(1, 6)), int(rng.integers(1, 4))
+        ratio, flat = np.float32(rng.choice([1.2, 1.9])), np.float32(rng.choice([1.1, 1.3]))
+        a = [x.copy() for x in (img, lut, region, mask, column, stripe, conf)]
+        b = [x.copy() for x in (img, lut, region, mask, column, stripe, conf)]
+        got = kernels.step_guard(*a[:2], box, *a[2:], reach, ratio, half, flat, OK, 8)
+        want = _step_guard_reference(*b[:2], box, *b[2:], reach, ratio, half, flat, OK, 8)
+        assert got == want
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+        n_hit += got
+    assert n_hit > 0
+
+
 @pytest.mark.slow
 def test_sim_hard_multi_object_step_guard_removes_stripes_carried_onto_the_wall():
     """Hard preset, blur 2.5 px: the blur carries the box's stripes (670 mm) 7 rows past its bottom
@@ -2538,3 +2629,47 @@ def test_ab_script_extracts_a_revision_beside_the_checkout(tmp_path):
         sys.path.remove(str(folder))
         for m in [m for m in sys.modules if m == name or m.startswith(name + ".")]:
             del sys.modules[m]
+
+
+def test_row_bands_equals_cumsum_form():
+    """kernels.row_bands (the bands _rim_rule_rows redoes) against the np.add.at / cumsum form."""
+    from gbscan import kernels
+
+    rng = np.random.default_rng(4)
+    for trial in range(200):
+        H, h = int(rng.integers(1, 60)), int(rng.integers(1, 5))
+        rows = np.sort(rng.integers(0, H, int(rng.integers(0, 12)))).astype(np.int64)
+        hit = np.zeros(H + 1, np.int32)
+        np.add.at(hit, np.clip(rows - h, 0, H), 1)
+        np.add.at(hit, np.clip(rows + h + 1, 0, H), -1)
+        redo = np.flatnonzero(np.cumsum(hit[:H]) > 0)
+        first, last = kernels.row_bands(rows, h, H)
+        if redo.size == 0:
+            assert first.size == 0
+            continue
+        cut = np.flatnonzero(np.diff(redo) > 1)
+        np.testing.assert_array_equal(first, redo[np.r_[0, cut + 1]])
+        np.testing.assert_array_equal(last, redo[np.r_[cut, redo.size - 1]])
+        # repeated rows (the decoder passes the segments' rows unfiltered): the same bands
+        f2, l2 = kernels.row_bands(np.repeat(rows, 2), h, H)
+        np.testing.assert_array_equal(f2, first)
+        np.testing.assert_array_equal(l2, last)
+
+
+def test_paste_window_equals_full_and_copy():
+    """kernels.paste_window (decode._paste) against np.full and a slice copy, every map dtype."""
+    from gbscan import kernels
+
+    rng = np.random.default_rng(9)
+    for dtype, fill in ((np.float32, np.nan), (np.int32, -1), (np.float32, 0), (np.uint8, DARK)):
+        for trial in range(20):
+            H, W = int(rng.integers(1, 30)), int(rng.integers(1, 30))
+            y0, x0 = int(rng.integers(0, H)), int(rng.integers(0, W))
+            y1, x1 = int(rng.integers(y0 + 1, H + 1)), int(rng.integers(x0 + 1, W + 1))
+            a = (rng.random((y1 - y0, x1 - x0)) * 100).astype(dtype)
+            want = np.full((H, W), fill, dtype)
+            want[y0:y1, x0:x1] = a
+            got = decode_module._paste((y0, y1, x0, x1), (H, W), fill, a)
+            assert got.dtype == want.dtype
+            np.testing.assert_array_equal(got, want)
+            np.testing.assert_array_equal(kernels.paste_window(a, H, W, y0, x0, a.dtype.type(fill)), want)

@@ -1252,3 +1252,146 @@ def test_run_starts_equals_the_label_changes():
             assert n == want.size, (W, kind)
             np.testing.assert_array_equal(rs[:n], want)
             assert rs[n] == W
+
+
+# -- compiled group-bys against the numpy expressions they replaced ------------------------------
+def _random_edges(rng, n_seg, n_edges):
+    s = np.sort(rng.integers(1, n_seg, n_edges)).astype(np.int32)
+    t = (s - rng.integers(1, 4, n_edges)).clip(0).astype(np.int32)
+    n_agree = rng.integers(0, 12, n_edges).astype(np.int32)
+    n_same = (n_agree + rng.integers(0, 4, n_edges)).astype(np.int32)
+    off = (2 * rng.integers(-2, 3, n_edges)).astype(np.int32)
+    return s, t, off, n_agree, n_same
+
+
+def test_edge_order_equals_lexsort():
+    from gbscan import kernels
+
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 7, 300):
+        _, _, _, n_agree, n_same = _random_edges(rng, 50, n)
+        want = np.lexsort((n_same - n_agree, -n_agree)).astype(np.int64)
+        np.testing.assert_array_equal(kernels.edge_order(n_agree, n_same), want)
+
+
+def _link_believable_numpy(n, s_, t_, off_, n_agree, n_same, strong, believable, order, p):
+    # the numpy form of link_believable that kernels.link_strips replaced
+    from gbscan import kernels
+
+    parent, pot = np.arange(n, dtype=np.int32), np.zeros(n, np.int32)
+    size, conflicts = np.ones(n, np.int32), np.zeros(n, np.int32)
+    ids = np.flatnonzero(strong)
+    if ids.size == 0:
+        return parent, pot, size, conflicts
+    score = n_agree[ids].astype(np.int64) * 4096 - (n_same[ids] - n_agree[ids])
+    best_up, best_dn = np.full(n, -1, np.int64), np.full(n, -1, np.int64)
+    o = np.argsort(score, kind="stable")
+    best_up[s_[ids[o]]] = ids[o]
+    best_dn[t_[ids[o]]] = ids[o]
+    mutual = np.zeros(s_.size, bool)
+    mutual[ids] = (best_up[s_[ids]] == ids) & (best_dn[t_[ids]] == ids)
+    kernels.link_segments(parent, pot, size, conflicts, s_, t_, off_, order, mutual, believable, False)
+    root, P = kernels.resolve_roots(parent, pot)
+    rest = ids[~mutual[ids]]
+    if rest.size:
+        A, B = root[s_[rest]].astype(np.int64), root[t_[rest]].astype(np.int64)
+        delta = off_[rest].astype(np.int64) - P[s_[rest]] + P[t_[rest]]
+        inside = A == B
+        ci = rest[inside & (delta != 0)]
+        np.add.at(conflicts, s_[ci], 1)
+        np.add.at(conflicts, t_[ci], 1)
+        A, B, delta = A[~inside], B[~inside], delta[~inside]
+        swap = A > B
+        A, B = np.where(swap, B, A), np.where(swap, A, B)
+        delta = np.where(swap, -delta, delta)
+        if A.size:
+            key = (A * n + B) * 8192 + (delta + 4096)
+            ukey, cnt = np.unique(key, return_counts=True)
+            pair = ukey // 8192
+            _, inv = np.unique(pair, return_inverse=True)
+            tot = np.bincount(inv, weights=cnt)
+            ok = (cnt >= p.n_ref_rows) & (cnt >= p.agree_frac * tot[inv])
+            kernels.link_segments(parent, pot, size, conflicts, (pair // n).astype(np.int32),
+                                  (pair % n).astype(np.int32), (ukey % 8192 - 4096).astype(np.int32),
+                                  np.argsort(-cnt, kind="stable").astype(np.int64), ok, believable, False)
+    return parent, pot, size, conflicts
+
+
+def test_link_strips_equals_numpy_group_by():
+    from gbscan import kernels
+
+    rng = np.random.default_rng(11)
+    for trial in range(60):
+        n = int(rng.integers(2, 80))
+        s_, t_, off_, n_agree, n_same = _random_edges(rng, n, int(rng.integers(0, 200)))
+        believable = rng.random(n) < 0.8
+        for p in (uw.UnwrapParams(), uw.UnwrapParams(n_ref_rows=1, agree_frac=0.5)):
+            strong = (rng.random(s_.size) < 0.7) & believable[s_] & believable[t_]
+            order = kernels.edge_order(n_agree, n_same)
+            want = _link_believable_numpy(n, s_, t_, off_, n_agree, n_same, strong, believable, order, p)
+            parent, pot = np.arange(n, dtype=np.int32), np.zeros(n, np.int32)
+            size, conflicts = np.ones(n, np.int32), np.zeros(n, np.int32)
+            kernels.link_strips(parent, pot, size, conflicts, s_, t_, off_, n_agree, n_same, order, strong,
+                                believable, p.n_ref_rows, p.agree_frac)
+            for got, ref in zip((parent, pot, size, conflicts), want):
+                np.testing.assert_array_equal(got, ref, err_msg=str(trial))
+
+
+def test_best_vote_offsets_equals_numpy_group_by():
+    from gbscan import kernels
+
+    rng = np.random.default_rng(7)
+    H, W = 40, 60
+    for trial in range(80):
+        n_comp, nv = int(rng.integers(1, 30)), int(rng.integers(1, 400))
+        vc = rng.integers(0, n_comp, nv).astype(np.int32)
+        k = rng.integers(-3, 4, nv).astype(np.int64)
+        good = rng.random(nv) < 0.8
+        vv = rng.integers(0, H, nv).astype(np.int32)
+        vl = np.where(rng.random(nv) < 0.5, rng.integers(0, W, nv), -1 - vv).astype(np.int32)
+        n_all, tried, bc, bk, bcnt, bl, br = kernels.best_vote_offsets(vc, k, good, vl, vv, n_comp, H, W)
+        # the numpy form link_components used
+        assert tried == np.unique(vc).size
+        np.testing.assert_array_equal(n_all, np.bincount(vc, minlength=n_comp))
+        gc, gk, gl, gv = vc[good].astype(np.int64), k[good], vl[good].astype(np.int64), vv[good].astype(np.int64)
+        if not gc.size:
+            assert bc.size == 0
+            continue
+        kk0 = gk - gk.min()
+        span = int(kk0.max()) + 1
+        pair = gc * span + kk0
+        pairs, cnt = np.unique(pair, return_counts=True)
+        H1 = H + 1
+        line_key = np.unique(pair * (H1 + W) + (gl + H1))
+        _, n_lines = np.unique(line_key // (H1 + W), return_counts=True)
+        _, n_rows = np.unique(np.unique(pair * H1 + gv) // H1, return_counts=True)
+        pc, pk = pairs // span, pairs % span + gk.min()
+        o = np.lexsort((-cnt, pc))
+        b = o[np.r_[True, np.diff(pc[o]) != 0]]
+        for got, ref in zip((bc, bk, bcnt, bl, br), (pc[b], pk[b], cnt[b], n_lines[b], n_rows[b])):
+            np.testing.assert_array_equal(got, ref, err_msg=str(trial))
+        # rows spanned (np.minimum.at / np.maximum.at)
+        seg_comp = np.where(rng.random(3 * n_comp) < 0.3, -1, rng.integers(0, n_comp, 3 * n_comp)).astype(np.int32)
+        seg_row = np.sort(rng.integers(0, H, seg_comp.size)).astype(np.int32)
+        r_lo, r_hi = np.full(seg_comp.size, np.iinfo(np.int64).max, np.int64), np.full(seg_comp.size, -1, np.int64)
+        cs = seg_comp >= 0
+        np.minimum.at(r_lo, seg_comp[cs], seg_row[cs].astype(np.int64))
+        np.maximum.at(r_hi, seg_comp[cs], seg_row[cs].astype(np.int64))
+        np.testing.assert_array_equal(kernels.component_row_span(seg_comp, seg_row, bc), r_hi[bc] - r_lo[bc] + 1)
+
+
+def test_index_tests_equals_np_select():
+    rng = np.random.default_rng(2)
+    n = 500
+    status = rng.integers(0, 5, n).astype(np.int64)
+    seen = rng.integers(0, 6, n).astype(np.int64)
+    evidence = rng.integers(0, 3000, n).astype(np.int64)
+    mismatch = rng.integers(0, 200, n).astype(np.int64)
+    runner_up = mismatch + rng.integers(0, 900, n)
+    for p in (uw.UnwrapParams(), uw.UnwrapParams(index_margin_events=0.0), uw.UnwrapParams(max_mismatch=0.01)):
+        want = np.select([status < 3, status == 4, seen < p.min_markers, mismatch > p.max_mismatch * evidence,
+                          runner_up - mismatch < uw._margin_px(p, evidence, seen)], [1, 2, 3, 4, 5], 0).astype(np.int8)
+        got = uw._index_tests(p, status, seen, evidence, mismatch, runner_up)
+        assert got.dtype == np.int8
+        np.testing.assert_array_equal(got, want)
+    assert uw._index_tests(uw.UnwrapParams(), [3], [4], [1000], [0], [900])[0] == 0

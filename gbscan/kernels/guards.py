@@ -263,6 +263,23 @@ def _brightness(img, lut, v, u, h):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _brightness_rows(img, lut, u, h, k0, out):
+    # out[i] = _brightness(img, lut, k0 + i, u, h): the same sums, the window's columns in the
+    # outer loop so the rows' sums run side by side (30% faster than one row after the other)
+    W = img.shape[1]
+    lo = max(u - h, 0)
+    hi = min(u + h, W - 1)
+    for i in range(out.size):
+        out[i] = np.float32(0.0)
+    for x in range(lo, hi + 1):
+        for i in range(out.size):
+            out[i] += lut[img[k0 + i, x, 1]] + lut[img[k0 + i, x, 2]]
+    c = np.float32(hi - lo + 1)
+    for i in range(out.size):
+        out[i] = out[i] / c
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _step_at(buf, i_bright, i_dim, half, ratio, flat):
     # the step test on buf[i_bright : i_bright + half] (the bright side's rows) against
     # buf[i_dim : i_dim + half] (the dim side's): brighter by more than ``ratio`` in the mean, the
@@ -289,8 +306,7 @@ def _step_below(img, lut, box_h, u, a, b, reach, ratio, half, flat, buf):
     t0 = max(a + half + 1, b - reach + 1)
     if t0 > b - half:
         return b + 2
-    for k in range(t0 - 1 - half, b + 1):
-        buf[k - a] = _brightness(img, lut, k, u, box_h)
+    _brightness_rows(img, lut, u, box_h, t0 - 1 - half, buf[t0 - 1 - half - a:b + 1 - a])
     for t in range(t0, b - half + 1):
         if _step_at(buf, t - 1 - half - a, t + 1 - a, half, ratio, flat):
             return t
@@ -304,8 +320,7 @@ def _step_above(img, lut, box_h, u, a, b, reach, ratio, half, flat, buf):
     t1 = min(b - half, a + reach)
     if t1 < a + half + 1:
         return a - 1
-    for k in range(a, t1 + half + 1):
-        buf[k - a] = _brightness(img, lut, k, u, box_h)
+    _brightness_rows(img, lut, u, box_h, a, buf[:t1 + half + 1 - a])
     for t in range(t1, a + half, -1):
         if _step_at(buf, t + 1 - a, t - 1 - half - a, half, ratio, flat):
             return t
@@ -358,7 +373,9 @@ def step_guard(img, lut, box, region, mask, column, stripe, conf, reach, ratio, 
     computed there alone.
 
     Each row is scanned 64 columns at a time for the columns whose region changes or whose top test
-    is due (a bit mask), and only those are visited (plane 0.36-0.50 -> 0.23-0.26 ms).
+    is due (a bit mask), and only those are visited (plane 0.36-0.50 -> 0.23-0.26 ms).  The
+    brightness (most of the time left) of a column's rows is summed side by side
+    (:func:`_brightness_rows`; plane 0.18 -> 0.145 ms, head 0.17 -> 0.13).
     """
     H, W = region.shape
     cur = np.full(W, -1, np.int32)

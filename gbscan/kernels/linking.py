@@ -409,3 +409,111 @@ def vertical_votes(labels, seg, rel, n_seg):
         ne += 1
     return (out[0, :ne].copy(), out[1, :ne].copy(), out[2, :ne].copy(), out[3, :ne].copy(), out[4, :ne].copy(),
             out[5, :ne].copy())
+
+# -- the votes of unwrap.link_components grouped (was numpy group-by glue) --------------------------
+@njit(cache=True, nogil=True)
+def best_vote_offsets(vc, k, good, vl, vv, n_comp, H, W):
+    """Group the column-continuity votes of :func:`gbscan.unwrap.link_components` per component.
+
+    ``vc`` (n,) component of each vote, ``k`` its offset (periods of two stripes), ``good`` whether
+    it agrees with that offset within the tolerance, ``vl`` its line (column ``>= 0`` or
+    ``-1 - row``), ``vv`` its candidate pixel's row; components are ``0 .. n_comp - 1``, lines in
+    ``[-H, W)``, rows in ``[0, H)``.  Returns ``n_all`` (n_comp,) int64 votes per component, the
+    number of components with votes, and, per component with agreeing votes (ascending), its best
+    offset: ``c, k, cnt`` (most agreeing votes; ties: the smallest offset) and that offset's
+    distinct lines ``n_lines`` and candidate rows ``n_rows`` (all int64)."""
+    n_all = np.zeros(n_comp, np.int64)
+    for i in range(vc.shape[0]):
+        n_all[vc[i]] += 1
+    tried = 0
+    for c in range(n_comp):
+        tried += n_all[c] > 0
+    # agreeing votes sorted by (component, offset)
+    ng = 0
+    for i in range(vc.shape[0]):
+        ng += good[i]
+    gi = np.empty(ng, np.int64)
+    ng = 0
+    for i in range(vc.shape[0]):
+        if good[i]:
+            gi[ng] = i
+            ng += 1
+    kmin = 0
+    kmax = 0
+    for q in range(ng):
+        x = k[gi[q]]
+        if q == 0 or x < kmin:
+            kmin = x
+        if q == 0 or x > kmax:
+            kmax = x
+    span = kmax - kmin + 1
+    pair = np.empty(ng, np.int64)
+    for q in range(ng):
+        pair[q] = np.int64(vc[gi[q]]) * span + (k[gi[q]] - kmin)
+    o = np.argsort(pair)
+    # per (component, offset) group: votes, distinct lines and rows (marks hold the group number)
+    line_mark = np.full(H + W, -1, np.int64)
+    row_mark = np.full(H, -1, np.int64)
+    bc = np.empty(ng, np.int64)
+    bk = np.empty(ng, np.int64)
+    bcnt = np.empty(ng, np.int64)
+    blines = np.empty(ng, np.int64)
+    brows = np.empty(ng, np.int64)
+    nb = 0
+    g = 0
+    a = 0
+    while a < ng:
+        key = pair[o[a]]
+        cnt = 0
+        nl = 0
+        nr = 0
+        b = a
+        while b < ng and pair[o[b]] == key:
+            i = gi[o[b]]
+            cnt += 1
+            li = vl[i] + H
+            if line_mark[li] != g:
+                line_mark[li] = g
+                nl += 1
+            if row_mark[vv[i]] != g:
+                row_mark[vv[i]] = g
+                nr += 1
+            b += 1
+        c = key // span
+        # groups come by ascending (component, offset): the first of the most votes wins
+        if nb == 0 or bc[nb - 1] != c:
+            bc[nb] = c
+            bk[nb] = key % span + kmin
+            bcnt[nb] = cnt
+            blines[nb] = nl
+            brows[nb] = nr
+            nb += 1
+        elif cnt > bcnt[nb - 1]:
+            bk[nb - 1] = key % span + kmin
+            bcnt[nb - 1] = cnt
+            blines[nb - 1] = nl
+            brows[nb - 1] = nr
+        g += 1
+        a = b
+    return n_all, tried, bc[:nb], bk[:nb], bcnt[:nb], blines[:nb], brows[:nb]
+
+
+@njit(cache=True, nogil=True)
+def component_row_span(seg_comp, seg_row, comps):
+    """Rows spanned by each of ``comps``: ``max - min + 1`` of the rows of the segments whose
+    ``seg_comp`` is it (int64; as ``np.minimum.at`` / ``np.maximum.at`` into int64 max / -1)."""
+    n = seg_comp.shape[0]
+    lo = np.full(n, np.iinfo(np.int64).max, np.int64)
+    hi = np.full(n, -1, np.int64)
+    for s in range(n):
+        c = seg_comp[s]
+        if c >= 0:
+            r = np.int64(seg_row[s])
+            if r < lo[c]:
+                lo[c] = r
+            if r > hi[c]:
+                hi[c] = r
+    out = np.empty(comps.shape[0], np.int64)
+    for q in range(comps.shape[0]):
+        out[q] = hi[comps[q]] - lo[comps[q]] + 1
+    return out

@@ -1298,3 +1298,110 @@ def apply_cuts(seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_par, j_seg, j_u
             if seg[v, u] >= 0:
                 nseg[v, u] = s
     return nseg, o_row, o_u0, o_u1, o_j0, o_j1, o_par, o_jseg, o_jua, o_jub, o_jla, o_jlb, o_jidx
+
+
+# -- paper step 4 in one pass (was numpy group-by glue in unwrap.link_believable) -----------------
+@njit(cache=True, nogil=True)
+def edge_order(n_agree, n_same):
+    """Edges strongest first, ``np.lexsort((n_same - n_agree, -n_agree))``: most agreeing votes,
+    then fewest dissenting ones, ties in edge order (one stable sort of a combined int64 key;
+    the dissent, a difference of two int32, is shifted to be non-negative under 2**34)."""
+    key = np.empty(n_agree.shape[0], np.int64)
+    for i in range(key.shape[0]):
+        key[i] = -np.int64(n_agree[i]) * (np.int64(1) << 34) + (np.int64(n_same[i]) - n_agree[i] + (np.int64(1) << 32))
+    return np.argsort(key, kind="mergesort").astype(np.int64)
+
+
+@njit(cache=True, nogil=True)
+def link_strips(parent, pot, size, conflicts, e_s, e_t, e_off, n_agree, n_same, order, strong, believable,
+                n_ref_rows, agree_frac):
+    """Paper step 4 kernel (:func:`gbscan.unwrap.link_believable`; union-find state in place).
+
+    ``strong`` (n_edges,) bool: strong edges between believable segments.  a. Each such edge that
+    is the best of its lower segment upwards and of its upper one downwards (score ``n_agree *
+    4096 - dissent``, ties to the later edge) links its two segments (``link_segments`` in
+    ``order``): strips.  b. The other strong edges, by the pair of strips they join (smaller root
+    first) and the offset between them: an edge inside one strip contradicting it is a conflict;
+    a (pair, offset) with ``n_ref_rows`` edges or more that are ``agree_frac`` of the pair's edges
+    links the strips, pairs with more edges first (ties in (pair, offset) order)."""
+    n = parent.shape[0]
+    ne = e_s.shape[0]
+    m = 0
+    for i in range(ne):
+        m += strong[i]
+    if m == 0:
+        return
+    ids = np.empty(m, np.int64)
+    score = np.empty(m, np.int64)
+    m = 0
+    for i in range(ne):
+        if strong[i]:
+            ids[m] = i
+            score[m] = np.int64(n_agree[i]) * 4096 - (n_same[i] - n_agree[i])
+            m += 1
+    # a. mutual best edges (ascending stable score order: the last write wins)
+    best_up = np.full(n, -1, np.int64)
+    best_dn = np.full(n, -1, np.int64)
+    for q in np.argsort(score, kind="mergesort"):
+        i = ids[q]
+        best_up[e_s[i]] = i
+        best_dn[e_t[i]] = i
+    mutual = np.zeros(ne, np.bool_)
+    n_rest = 0
+    for i in ids:
+        mutual[i] = best_up[e_s[i]] == i and best_dn[e_t[i]] == i
+        n_rest += not mutual[i]
+    link_segments(parent, pot, size, conflicts, e_s, e_t, e_off, order, mutual, believable, False)
+    root, P = resolve_roots(parent, pot)   # (compresses every path, as the numpy form did)
+    if n_rest == 0:
+        return
+    # b. the other strong edges keyed by (strip pair, offset): key (A n + B) 8192 + delta + 4096
+    key = np.empty(n_rest, np.int64)
+    nk = 0
+    for i in ids:
+        if mutual[i]:
+            continue
+        A = np.int64(root[e_s[i]])
+        B = np.int64(root[e_t[i]])
+        delta = np.int64(e_off[i]) - P[e_s[i]] + P[e_t[i]]
+        if A == B:
+            if delta != 0:
+                conflicts[e_s[i]] += 1
+                conflicts[e_t[i]] += 1
+            continue
+        if A > B:
+            A, B, delta = B, A, -delta
+        key[nk] = (A * n + B) * 8192 + (delta + 4096)
+        nk += 1
+    if nk == 0:
+        return
+    key = np.sort(key[:nk])
+    # distinct keys and their counts; each pair's total over its offsets
+    ukey = np.empty(nk, np.int64)
+    cnt = np.zeros(nk, np.int64)
+    nu = 0
+    for x in key:
+        if nu == 0 or ukey[nu - 1] != x:
+            ukey[nu] = x
+            nu += 1
+        cnt[nu - 1] += 1
+    ok = np.zeros(nu, np.bool_)
+    pa = np.empty(nu, np.int32)
+    pb = np.empty(nu, np.int32)
+    pdelta = np.empty(nu, np.int32)
+    g = 0
+    while g < nu:
+        pair = ukey[g] // 8192
+        h = g
+        tot = 0
+        while h < nu and ukey[h] // 8192 == pair:
+            tot += cnt[h]
+            h += 1
+        for q in range(g, h):
+            ok[q] = cnt[q] >= n_ref_rows and cnt[q] >= agree_frac * np.float64(tot)
+            pa[q] = pair // n
+            pb[q] = pair % n
+            pdelta[q] = ukey[q] % 8192 - 4096
+        g = h
+    order_b = np.argsort(-cnt[:nu], kind="mergesort").astype(np.int64)
+    link_segments(parent, pot, size, conflicts, pa, pb, pdelta, order_b, ok, believable, False)
