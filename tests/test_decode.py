@@ -1943,9 +1943,7 @@ def _step_guard_reference(img, lut, box, region, mask, column, stripe, conf, rea
             ts = [t for t in range(a + half + 1, b - half + 1)]
             below = [t for t in ts if b - t + 1 <= reach
                      and step(range(t - 1 - half, t - 1), range(t + 1, t + 1 + half), u)]
-            # (the kernel runs this test reach + half + 1 rows into the run, or at its end: never
-            # for a run that starts fewer rows than that above the image's bottom)
-            above = [t for t in ts if t - a <= reach and a + reach + half + 1 <= H
+            above = [t for t in ts if t - a <= reach
                      and step(range(t + 1, t + 1 + half), range(t - 1 - half, t - 1), u)]
             if below:
                 to_mask[min(below) - 1:b + 1, u] = True   # the lowest boundary: rows t - 1 .. b

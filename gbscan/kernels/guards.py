@@ -414,7 +414,9 @@ def step_guard(img, lut, box, region, mask, column, stripe, conf, reach, ratio, 
                     n += _unreport_rows(mask, column, stripe, conf, u, lo_t - 1, b, ok_code, code)
                 cur[u] = r
                 start[u] = v
-                due[u] = v + top_rows if r >= 0 else H + 1
+                # (a run starting within top_rows of the bottom is tested when it ends, at H at the
+                # latest: H + 1 means "tested")
+                due[u] = min(v + top_rows, H) if r >= 0 else H + 1
             base = e
     return n
 
