@@ -2338,6 +2338,28 @@ def test_joined_transitions_add_face_pixels_on_their_stripes():
     assert rms(extra) < 2.0 * rms(good & off.valid)
 
 
+def test_lit_means_kernel_matches_sums_in_row_major_order():
+    """kernels.lit_means: float64 sums in row-major order over the bright samples, over all of
+    them when fewer than 16 are bright (both cases), bit for bit."""
+    from gbscan import kernels
+
+    rng = np.random.default_rng(7)
+    for nb in (0, 5, 15, 16, 40, 500):
+        g = rng.random((23, 31)).astype(np.float32)
+        b = rng.random((23, 31)).astype(np.float32)
+        idx = rng.choice(g.size, nb, replace=False)
+        g.flat[idx[::2]] += np.float32(9.0)
+        b.flat[idx[1::2]] += np.float32(9.0)
+        sg = sb = ag = ab = 0.0
+        n = 0
+        for x, y in zip(g.ravel().tolist(), b.ravel().tolist()):
+            ag, ab = ag + x, ab + y
+            if max(x, y) > 4.0:
+                sg, sb, n = sg + x, sb + y, n + 1
+        want = (sg / n, sb / n, n) if n >= 16 else (ag / g.size, ab / g.size, n)
+        assert n == nb and kernels.lit_means(g, b, np.float32(4.0)) == want
+
+
 # -- the lit window (DecodeParams.crop) --------------------------------------------------------------
 def test_bright_window_kernel_is_the_bounding_box_of_bright_green_or_blue():
     from gbscan import kernels

@@ -1395,3 +1395,107 @@ def test_index_tests_equals_np_select():
         assert got.dtype == np.int8
         np.testing.assert_array_equal(got, want)
     assert uw._index_tests(uw.UnwrapParams(), [3], [4], [1000], [0], [900])[0] == 0
+
+
+def _random_segments(seed, H=14, W=150):
+    """Labels of noisy stripes (some rows shifted, a dark left part) and their row segments."""
+    from gbscan import kernels
+
+    rng = np.random.default_rng(seed)
+    cols = np.array([G, B, G, B, C, G, B, G], np.uint8)
+    x = (np.arange(W)[None, :] + rng.integers(0, 3, (H, 1))) // 4
+    lab = cols[x % 8]
+    noise = rng.random((H, W)) < 0.05
+    lab[noise] = rng.integers(0, 4, int(noise.sum()))
+    lab[:, :10] = N
+    return rng, lab, kernels.row_segments(lab, 1, 1, 2, True)
+
+
+def test_subpixel_junctions_equals_a_plain_loop():
+    """kernels.subpixel_junctions (the four-pixel window unrolled) against the crossing search
+    written out in Python, with the same float rounding (green|blue: a float32 difference)."""
+    from gbscan import kernels
+
+    for seed in range(4):
+        rng, lab, r = _random_segments(seed)
+        seg, rel, row, u0, u1, j0, j1, par, jseg, jua, jub, jla, jlb = r[:13]
+        gn = rng.random(lab.shape).astype(np.float32)
+        bn = rng.random(lab.shape).astype(np.float32)
+        if seed % 2:
+            gn, bn = (np.round(gn * 4) / 4).astype(np.float32), (np.round(bn * 4) / 4).astype(np.float32)
+        ox = 7 * seed
+        got = kernels.subpixel_junctions(gn, bn, row, jua, jub, jla, jlb, u0, u1, jseg, ox)
+        want = np.full(jseg.size, np.nan, np.float32)
+        for j in range(jseg.size):
+            s, la, lb = jseg[j], jla[j], jlb[j]
+            v = row[s]
+            a, b = max(int(jua[j]) - 1, int(u0[s])), min(int(jub[j]) + 1, int(u1[s]))
+            mid = 0.5 * ((int(jua[j]) + ox) + (int(jub[j]) + ox))
+            best, bestd, f0 = np.nan, 1e9, 0.0
+            for u in range(a, b + 1):
+                g_, b_ = gn[v, u], bn[v, u]
+                if la == C:
+                    f = 0.5 - float(b_ if lb == G else g_)
+                elif lb == C:
+                    f = float(b_ if la == G else g_) - 0.5
+                else:
+                    f = float(b_ - g_) if la == G else float(g_ - b_)
+                if u > a and f0 < 0.0 and f >= 0.0:
+                    xx = (u - 1 + ox) + f0 / (f0 - f)
+                    if abs(xx - mid) < bestd:
+                        best, bestd = xx, abs(xx - mid)
+                f0 = f
+            want[j] = best
+        assert got.tobytes() == want.tobytes()
+
+
+def test_apply_cuts_gather_equals_a_plain_split():
+    """kernels.apply_cuts_gather (the new image written row by row) and apply_cuts against the
+    split written out in Python, on segments in row order and on the same tables reversed (the
+    general path: each piece painted over a copy in turn)."""
+    from gbscan import kernels
+
+    for seed in range(4):
+        rng, lab, r = _random_segments(seed)
+        seg, rel, row, u0, u1, j0, j1, par, jseg, jua, jub, jla, jlb, jrel = r[:14]
+        jx = rng.random(jseg.size).astype(np.float32)
+        cut = (rng.random(jseg.size) < 0.1).astype(np.uint8)
+        for order in (slice(None), slice(None, None, -1)):
+            tabs = [t[order].copy() for t in (row, u0, u1, j0, j1, par)]
+            pieces, kept = [], []
+            for s in range(tabs[0].size):
+                v, a = tabs[0][s], tabs[1][s]
+                first = len(kept)
+                for j in range(tabs[3][s], tabs[4][s]):
+                    if cut[j]:
+                        pieces.append((v, a, jua[j], first, len(kept), tabs[5][s]))
+                        a, first = jub[j], len(kept)
+                    else:
+                        kept.append((len(pieces), j))
+                pieces.append((v, a, tabs[2][s], first, len(kept), tabs[5][s]))
+            want_seg = seg.copy()
+            for k, (v, a, b, _, _, _) in enumerate(pieces):
+                want_seg[v, a:b + 1] = np.where(seg[v, a:b + 1] >= 0, k, want_seg[v, a:b + 1])
+            idx = np.array([j for _, j in kept], np.int32)
+            P = np.array(pieces, np.int64).T
+            want = [want_seg, *[P[i].astype(np.int32) for i in range(5)], P[5].astype(np.uint8),
+                    np.array([k for k, _ in kept], np.int32), jua[idx], jub[idx], jla[idx], jlb[idx], idx, jrel[idx], jx[idx]]
+            args = (seg, *tabs, jseg, jua, jub, jla, jlb, cut)
+            got = kernels.apply_cuts_gather(*args, jrel, jx)
+            assert len(got) == 15 and all(g.dtype == w.dtype and np.array_equal(g, w) for g, w in zip(got, want))
+            got = kernels.apply_cuts(*args)
+            assert len(got) == 13 and all(g.dtype == w.dtype and np.array_equal(g, w) for g, w in zip(got, want))
+
+
+def test_vertical_votes_int64_keys_equal_the_sorted_form():
+    """kernels.vertical_votes with more than 724 segments (keys past int32) and with few (int32
+    keys) against the sort of all keys."""
+    from gbscan import kernels
+
+    for seed in range(3):
+        _, lab, r = _random_segments(seed, H=40, W=200)
+        seg, rel, n = r[0], r[1], r[2].size
+        for n_seg in (n, n + 800):
+            a = kernels.vertical_votes(lab, seg, rel, n_seg)
+            b = kernels._vertical_votes_sorted(lab, seg, rel, n_seg)
+            assert all(np.array_equal(x, y) for x, y in zip(a, b)) and a[0].size > 0

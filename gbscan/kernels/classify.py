@@ -628,25 +628,29 @@ def lit_means(g, b, bright_level):
     """Means of ``g`` and ``b`` (2-D float32) over the samples where ``max(g, b) > bright_level``
     (over all samples when fewer than 16 are that bright), summed in float64 in row-major order.
     Returns ``(mean_g, mean_b, n_bright)``."""
+    # the bright sums first; the plain means (a second pass) only when too few are bright.  The
+    # sums with one add chain each (float64 adds in order are bound by their latency: fewer chains)
     sg = 0.0
     sb = 0.0
-    ag = 0.0
-    ab = 0.0
     n = 0
     H, W = g.shape
     for v in range(H):
         for u in range(W):
             x = g[v, u]
             y = b[v, u]
-            ag += x
-            ab += y
             if max(x, y) > bright_level:
                 sg += x
                 sb += y
                 n += 1
-    if n < 16:
-        return ag / max(H * W, 1), ab / max(H * W, 1), n
-    return sg / n, sb / n, n
+    if n >= 16:
+        return sg / n, sb / n, n
+    ag = 0.0
+    ab = 0.0
+    for v in range(H):
+        for u in range(W):
+            ag += g[v, u]
+            ab += b[v, u]
+    return ag / max(H * W, 1), ab / max(H * W, 1), n
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1298,28 +1302,38 @@ def stream_frame(img, lut, kh, sg, sb, thr_w, norm_w, cyan_level, min_level, raw
 def bright_window(img, level):
     """The smallest window holding every pixel of an RGB uint8 frame (H, W, 3) whose green or blue
     byte is at least ``level``: (y0, y1, x0, x1), half-open; (0, 0, 0, 0) when there is none.
-    One pass over the rows: a row's largest green/blue byte (vectorised), and its first and last
-    bright pixel only for rows that have one (``gbscan.decode`` decodes a frame's lit window)."""
+    The first and last bright rows from the rows' largest green/blue bytes (from each end), then
+    the columns' largest byte over the rows between them (vectorised loops, no per-pixel scans;
+    ``gbscan.decode`` decodes a frame's lit window)."""
     H, W = img.shape[0], img.shape[1]
     flat = img.reshape(H, 3 * W)
-    y0, y1, x0, x1 = H, 0, W, 0
-    for v in range(H):
-        px = flat[v]
-        m = np.uint8(0)
-        for u in range(W):
-            m = max(m, max(px[3 * u + 1], px[3 * u + 2]))
-        if m < level:
-            continue
-        y0 = min(y0, v)
-        y1 = v + 1
-        a = 0
-        while max(px[3 * a + 1], px[3 * a + 2]) < level:
-            a += 1
-        b = W - 1
-        while max(px[3 * b + 1], px[3 * b + 2]) < level:
-            b -= 1
-        x0 = min(x0, a)
-        x1 = max(x1, b + 1)
-    if y1 == 0:
+    y0 = 0
+    while y0 < H and _row_max_gb(flat[y0]) < level:
+        y0 += 1
+    if y0 == H:
         return 0, 0, 0, 0
+    y1 = H
+    while _row_max_gb(flat[y1 - 1]) < level:
+        y1 -= 1
+    # column maxima over the rows y0..y1-1 (row y0 holds a bright pixel, so some column does)
+    cm = np.zeros(W, np.uint8)
+    for v in range(y0, y1):
+        px = flat[v]
+        for u in range(W):
+            cm[u] = max(cm[u], max(px[3 * u + 1], px[3 * u + 2]))
+    x0 = 0
+    while cm[x0] < level:
+        x0 += 1
+    x1 = W
+    while cm[x1 - 1] < level:
+        x1 -= 1
     return y0, y1, x0, x1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _row_max_gb(px):
+    # the largest green or blue byte of a flat RGB row (vectorised)
+    m = np.uint8(0)
+    for u in range(px.size // 3):
+        m = max(m, max(px[3 * u + 1], px[3 * u + 2]))
+    return m

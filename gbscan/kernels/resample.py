@@ -23,13 +23,30 @@ def stripe_run_px(img, lut, row_step, level, floor, max_run, quantile=0.5):
     when none.
     """
     H, W = img.shape[0], img.shape[1]
+    # both passes walk a row from its first to its last pixel that may be lit (lo, hi): a pixel
+    # whose green and blue bytes are below ``c`` is dark for sure (any two LUT values below c sum
+    # to at most floor), and a dark pixel ends a run anyway
+    c = _dark_below(lut, floor)
+    flat = img.reshape(H, 3 * W)
+    nr = (H + row_step - 1) // row_step
+    lo = np.empty(nr, np.int64)
+    hi = np.empty(nr, np.int64)
     sg = 0.0
     sb = 0.0
     n = 0
-    for v in range(0, H, row_step):
-        for u in range(W):
-            g = lut[img[v, u, 1]]
-            b = lut[img[v, u, 2]]
+    for i in range(nr):
+        px = flat[i * row_step]
+        a = 0
+        while a < W and max(px[3 * a + 1], px[3 * a + 2]) < c:
+            a += 1
+        e = W
+        while e > a and max(px[3 * e - 2], px[3 * e - 1]) < c:
+            e -= 1
+        lo[i] = a
+        hi[i] = e
+        for u in range(a, e):
+            g = lut[px[3 * u + 1]]
+            b = lut[px[3 * u + 2]]
             if g + b > floor:
                 sg += g
                 sb += b
@@ -40,12 +57,13 @@ def stripe_run_px(img, lut, row_step, level, floor, max_run, quantile=0.5):
     kb = n / sb
     hist = np.zeros(max_run + 1, np.int64)
     total = 0
-    for v in range(0, H, row_step):
+    for i in range(nr):
+        px = flat[i * row_step]
         state = 0
         start = -1
-        for u in range(W):
-            g = lut[img[v, u, 1]]
-            b = lut[img[v, u, 2]]
+        for u in range(lo[i], hi[i]):
+            g = lut[px[3 * u + 1]]
+            b = lut[px[3 * u + 2]]
             if g + b <= floor:
                 state = 0
                 start = -1
@@ -76,6 +94,20 @@ def stripe_run_px(img, lut, row_step, level, floor, max_run, quantile=0.5):
             return r - 0.5 + (half - acc) / hist[r], total
         acc += hist[r]
     return float(max_run), total
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _dark_below(lut, floor):
+    """The count ``c`` of leading bytes whose LUT values, any two summed (float32), are at most
+    ``floor``: twice the largest of lut[0..c-1] is (a float32 sum is monotone in each term)."""
+    m = lut[0]
+    c = 0
+    while c < lut.size:
+        m = max(m, lut[c])
+        if not m + m <= floor:
+            break
+        c += 1
+    return c
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

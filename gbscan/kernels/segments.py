@@ -590,6 +590,39 @@ def resolve_roots(parent, pot):
 
 
 @njit(cache=True, nogil=True)
+def _sj_f(la, lb, g, b):
+    # subpixel_junctions' signal at a pixel of channels g, b for the colours la | lb: it crosses
+    # zero upwards at the boundary
+    if la == CYAN:
+        if lb == GREEN:
+            f = 0.5 - b
+        else:
+            f = 0.5 - g
+    elif lb == CYAN:
+        if la == GREEN:
+            f = b - 0.5
+        else:
+            f = g - 0.5
+    elif la == GREEN:
+        f = b - g
+    else:
+        f = g - b
+    return f
+
+
+@njit(cache=True, nogil=True)
+def _sj_cross(u, f0, f, ox, mid, best, bestd):
+    # subpixel_junctions: the crossing between pixels u - 1 and u (signal f0, f), if there is one
+    # nearer to mid than the best so far, and its distance; else the best so far
+    if f0 < 0.0 and f >= 0.0:
+        x = (u - 1 + ox) + f0 / (f0 - f)
+        d = abs(x - mid)
+        if d < bestd:
+            return x, d
+    return best, bestd
+
+
+@njit(cache=True, nogil=True)
 def subpixel_junctions(gn, bn, seg_row, j_ua, j_ub, j_la, j_lb, seg_u0, seg_u1, j_seg, ox=0):
     """Sub-pixel position (camera px, along the row) of every junction (stripe boundary); ``ox``
     the column of the frame where the arrays start (a decoded window): the positions are the
@@ -602,42 +635,47 @@ def subpixel_junctions(gn, bn, seg_row, j_ua, j_ub, j_la, j_lb, seg_u0, seg_u1, 
     searched from the last pixel of the left run - 1 to the first pixel of the right run + 1 and
     located by linear interpolation between the two samples that bracket it.  NaN if none.
     Junction ``j`` lies in segment ``j_seg[j]``, on row ``seg_row`` of it.
+
+    Per junction, its segment's row and span are read only where the segment changes, and the
+    usual window of four pixels (``a .. a + 3``) is unrolled (plane 0.44 -> 0.31 ms).
     """
     nj = j_seg.shape[0]
-    out = np.full(nj, np.nan, np.float32)
+    out = np.empty(nj, np.float32)
+    s = -1
+    grow = gn[0]
+    brow = bn[0]
+    u0 = 0
+    u1 = 0
     for j in range(nj):
-        s = j_seg[j]
-        v = seg_row[s]
+        if j_seg[j] != s:     # a new segment: its row and span
+            s = j_seg[j]
+            v = seg_row[s]
+            grow = gn[v]
+            brow = bn[v]
+            u0 = seg_u0[s]
+            u1 = seg_u1[s]
         la = j_la[j]
         lb = j_lb[j]
-        a = max(j_ua[j] - 1, seg_u0[s])
-        b = min(j_ub[j] + 1, seg_u1[s])
+        a = max(j_ua[j] - 1, u0)
+        b = min(j_ub[j] + 1, u1)
         mid = 0.5 * ((j_ua[j] + ox) + (j_ub[j] + ox))
         best = np.nan
         bestd = 1e9
-        f0 = 0.0
-        for u in range(a, b + 1):
-            if la == CYAN:
-                if lb == GREEN:
-                    f = 0.5 - bn[v, u]
-                else:
-                    f = 0.5 - gn[v, u]
-            elif lb == CYAN:
-                if la == GREEN:
-                    f = bn[v, u] - 0.5
-                else:
-                    f = gn[v, u] - 0.5
-            elif la == GREEN:
-                f = bn[v, u] - gn[v, u]
-            else:
-                f = gn[v, u] - bn[v, u]
-            if u > a and f0 < 0.0 and f >= 0.0:
-                x = (u - 1 + ox) + f0 / (f0 - f)
-                d = abs(x - mid)
-                if d < bestd:
-                    bestd = d
-                    best = x
-            f0 = f
+        if b - a == 3:    # adjacent runs away from the span's ends: the pairs (a, a+1) .. (a+2, a+3)
+            fa = _sj_f(la, lb, grow[a], brow[a])
+            fb = _sj_f(la, lb, grow[a + 1], brow[a + 1])
+            fc = _sj_f(la, lb, grow[a + 2], brow[a + 2])
+            fd = _sj_f(la, lb, grow[a + 3], brow[a + 3])
+            best, bestd = _sj_cross(a + 1, fa, fb, ox, mid, best, bestd)
+            best, bestd = _sj_cross(a + 2, fb, fc, ox, mid, best, bestd)
+            best, bestd = _sj_cross(a + 3, fc, fd, ox, mid, best, bestd)
+        else:
+            f0 = 0.0
+            for u in range(a, b + 1):
+                f = _sj_f(la, lb, grow[u], brow[u])
+                if u > a:
+                    best, bestd = _sj_cross(u, f0, f, ox, mid, best, bestd)
+                f0 = f
         out[j] = best
     return out
 
@@ -1239,11 +1277,37 @@ def cut_junctions(labels, seg, rel, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_u
 
 
 @njit(cache=True, nogil=True)
+def _sel_piece(o, sr, k):
+    # apply_cuts: a piece's pixels are k where the old image has a segment, else as they were
+    for u in range(o.size):
+        x = sr[u]
+        o[u] = k if x >= 0 else x
+
+
+@njit(cache=True, nogil=True)
 def apply_cuts(seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_par, j_seg, j_ua, j_ub, j_la, j_lb, cut):
     """Split segments at the cut junctions (the cut junction is dropped); rel is unchanged.
 
     Returns new per-pixel ``seg`` and the new segment/junction tables (same layout as
-    :func:`row_segments`; pieces keep row order).  A piece's parity flag is inherited.
+    :func:`row_segments`; pieces keep row order) and each kept junction's old index.  A piece's
+    parity flag is inherited.  (:func:`apply_cuts_gather` also gathers ``j_rel`` and ``j_x``.)
+    """
+    r = apply_cuts_gather(seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_par, j_seg, j_ua, j_ub, j_la, j_lb, cut,
+                          np.zeros(j_seg.shape[0], np.int32), np.empty(0, np.float32))
+    return r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8], r[9], r[10], r[11], r[12]
+
+
+@njit(cache=True, nogil=True)
+def apply_cuts_gather(seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_par, j_seg, j_ua, j_ub, j_la, j_lb, cut,
+                      j_rel, j_x):
+    """:func:`apply_cuts`, its 13 results and the kept junctions' ``j_rel`` and ``j_x`` (``j_x``'s
+    empty if it is not one per junction), gathered as they are kept (the numpy
+    gathers after the kernel took as long as the kernel on a head).
+
+    The new ``seg`` is written once, row by row, where the pieces are in row order with disjoint
+    spans inside the image (as :func:`row_segments` makes them): a piece's span by a vector
+    select, the rest copied (head 0.19 -> 0.10 ms for two calls, the gathers included);
+    otherwise the old image is copied and each piece painted over it in turn.
     """
     H, W = seg.shape
     n_cut = 0
@@ -1251,6 +1315,7 @@ def apply_cuts(seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_par, j_seg, j_u
         n_cut += cut[j]
     ns = seg_row.shape[0] + n_cut
     nj = j_seg.shape[0] - n_cut
+    gx = j_x.shape[0] == j_seg.shape[0]
     o_row = np.empty(ns, np.int32)
     o_u0 = np.empty(ns, np.int32)
     o_u1 = np.empty(ns, np.int32)
@@ -1263,7 +1328,8 @@ def apply_cuts(seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_par, j_seg, j_u
     o_jla = np.empty(nj, np.uint8)
     o_jlb = np.empty(nj, np.uint8)
     o_jidx = np.empty(nj, np.int32)
-    nseg = seg.copy()
+    o_jrel = np.empty(nj, j_rel.dtype)
+    o_jx = np.empty(nj if gx else 0, j_x.dtype)
     k = 0
     m = 0
     for s in range(seg_row.shape[0]):
@@ -1288,16 +1354,51 @@ def apply_cuts(seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_par, j_seg, j_u
                 o_jla[m] = j_la[j]
                 o_jlb[m] = j_lb[j]
                 o_jidx[m] = j
+                o_jrel[m] = j_rel[j]
+                if gx:
+                    o_jx[m] = j_x[j]
                 m += 1
         o_u1[k] = seg_u1[s]
         o_j1[k] = m
         k += 1
+    # the pieces in row order, each span inside the image and after the row's pieces before it
+    ok = True
+    vp = 0
+    e = 0
     for s in range(ns):
-        v = o_row[s]
-        for u in range(o_u0[s], o_u1[s] + 1):
-            if seg[v, u] >= 0:
-                nseg[v, u] = s
-    return nseg, o_row, o_u0, o_u1, o_j0, o_j1, o_par, o_jseg, o_jua, o_jub, o_jla, o_jlb, o_jidx
+        if o_row[s] != vp:
+            ok = ok & (o_row[s] > vp)
+            vp = o_row[s]
+            e = 0
+        ok = ok & (o_u0[s] >= e) & (o_u1[s] < W)
+        e = max(e, o_u1[s] + 1)
+    ok = ok & (vp < H)
+    if ok:
+        nseg = np.empty((H, W), np.int32)
+        s = 0
+        for v in range(H):
+            o = nseg[v]
+            sr = seg[v]
+            u = 0
+            while s < ns and o_row[s] == v:
+                a = np.int64(o_u0[s])
+                b = np.int64(o_u1[s]) + 1
+                if a > u:
+                    copy_row(o[u:a], sr[u:a])
+                if b > a:
+                    _sel_piece(o[a:b], sr[a:b], np.int32(s))
+                u = max(u, b)
+                s += 1
+            if u < W:
+                copy_row(o[u:W], sr[u:W])
+    else:
+        nseg = seg.copy()
+        for s in range(ns):
+            v = o_row[s]
+            for u in range(o_u0[s], o_u1[s] + 1):
+                if seg[v, u] >= 0:
+                    nseg[v, u] = s
+    return nseg, o_row, o_u0, o_u1, o_j0, o_j1, o_par, o_jseg, o_jua, o_jub, o_jla, o_jlb, o_jidx, o_jrel, o_jx
 
 
 # -- paper step 4 in one pass (was numpy group-by glue in unwrap.link_believable) -----------------
