@@ -2615,7 +2615,8 @@ def test_ab_script_alternates_and_compares_results():
     b = decode(img, spec)
     b.stats["regions_indexed"] += 1
     assert ab.same_results(a, b) == (True, False)
-    text = ab.report("plane", np.array([10.0, 12.0]), np.array([9.0, 9.6]), [a, a], [a, a], True, False)
+    text = ab.report("plane", np.array([10.0, 12.0]), np.array([9.0, 9.6]), [a.stats["ms"]] * 2, [b.stats["ms"]] * 2,
+                     True, False)
     assert "median ratio of pairs new/old 0.850" in text and "stats DIFFERENT" in text
 
 
