@@ -15,10 +15,11 @@ pays for numba.  Every kernel works on plain numpy arrays; the conventions are t
 The kernels live in one module per concept and are all reachable here as ``kernels.NAME``:
 
 =================  =================================================================================
-``segments``       paper steps 1-2: runs, segments, vertical votes, links, junctions, columns, cuts
-``classify``       stages 1-3: blur, colour balance, threshold, classify; the fused ``stream_frame``
-``regions``        final masks (``finish_pixels``), dark transitions, region histograms and offset scores, step 7, rim
-``linking``        vertical votes between rows, marker conflicts, the linking's slope samples and verdicts
+``segments``       paper steps 1-2 and 4: runs, segments, links, strips (``link_strips``), junctions, columns, cuts
+``classify``       stages 1-3: blur, colour balance, threshold, classify; the fused ``stream_frame``; the lit window
+``regions``        final masks (``finish_pixels``), dark transitions, region histograms, offset scores and the
+                   indexing's tests, step 7, rim; pasting a window's map into the frame
+``linking``        vertical votes between rows, marker conflicts, the linking's votes grouped, slope samples, verdicts
 ``guards``         rim guard rows, stripe SNR, orphans, brightness-step guard, bridge cuts
 ``resample``       stripe width from runs, linear-light shrinking, expanding a coarse decode
 ``pointmap``       cleaning an organised point map (``gbscan.clean``)
