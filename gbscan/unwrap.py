@@ -565,13 +565,14 @@ def _apply_cuts(segs: Segments, cut: np.ndarray) -> Segments:
     from . import kernels
 
     j_x = _NO_JX if segs.j_x is None else segs.j_x
-    r = kernels.apply_cuts_gather(segs.seg, segs.row, segs.u0, segs.u1, segs.j0, segs.j1, segs.parity, segs.j_seg,
-                                  segs.j_ua, segs.j_ub, segs.j_la, segs.j_lb, cut, segs.j_rel, j_x)
+    r = kernels.apply_cuts(segs.seg, segs.row, segs.u0, segs.u1, segs.j0, segs.j1, segs.parity, segs.j_seg,
+                           segs.j_ua, segs.j_ub, segs.j_la, segs.j_lb, cut, segs.j_rel, j_x)
     return Segments(r[0], segs.rel, r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8], r[9], r[10], r[11], r[13],
                     None if segs.j_x is None else r[14])
 
 
 _NO_JX = np.empty(0, np.float32)   # _apply_cuts' j_x where the segments have none
+
 
 def cut_depth_edges(segs: Segments, ratio: float) -> Segments:
     """Step 1 (geometry check of the transitions): cut segments where the boundary spacing jumps.

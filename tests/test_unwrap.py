@@ -1449,9 +1449,9 @@ def test_subpixel_junctions_equals_a_plain_loop():
         assert got.tobytes() == want.tobytes()
 
 
-def test_apply_cuts_gather_equals_a_plain_split():
-    """kernels.apply_cuts_gather (the new image written row by row) and apply_cuts against the
-    split written out in Python, on segments in row order and on the same tables reversed (the
+def test_apply_cuts_equals_a_plain_split():
+    """kernels.apply_cuts (the new image written row by row, the kept junctions gathered) against
+    the split written out in Python, on segments in row order and on the same tables reversed (the
     general path: each piece painted over a copy in turn)."""
     from gbscan import kernels
 
@@ -1481,10 +1481,10 @@ def test_apply_cuts_gather_equals_a_plain_split():
             want = [want_seg, *[P[i].astype(np.int32) for i in range(5)], P[5].astype(np.uint8),
                     np.array([k for k, _ in kept], np.int32), jua[idx], jub[idx], jla[idx], jlb[idx], idx, jrel[idx], jx[idx]]
             args = (seg, *tabs, jseg, jua, jub, jla, jlb, cut)
-            got = kernels.apply_cuts_gather(*args, jrel, jx)
+            got = kernels.apply_cuts(*args, jrel, jx)
             assert len(got) == 15 and all(g.dtype == w.dtype and np.array_equal(g, w) for g, w in zip(got, want))
-            got = kernels.apply_cuts(*args)
-            assert len(got) == 13 and all(g.dtype == w.dtype and np.array_equal(g, w) for g, w in zip(got, want))
+            got = kernels.apply_cuts(*args, jrel, np.empty(0, np.float32))      # no located boundaries
+            assert got[14].size == 0 and all(np.array_equal(g, w) for g, w in zip(got[:14], want[:14]))
 
 
 def test_vertical_votes_int64_keys_equal_the_sorted_form():

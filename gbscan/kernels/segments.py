@@ -1285,24 +1285,14 @@ def _sel_piece(o, sr, k):
 
 
 @njit(cache=True, nogil=True)
-def apply_cuts(seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_par, j_seg, j_ua, j_ub, j_la, j_lb, cut):
+def apply_cuts(seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_par, j_seg, j_ua, j_ub, j_la, j_lb, cut, j_rel, j_x):
     """Split segments at the cut junctions (the cut junction is dropped); rel is unchanged.
 
-    Returns new per-pixel ``seg`` and the new segment/junction tables (same layout as
-    :func:`row_segments`; pieces keep row order) and each kept junction's old index.  A piece's
-    parity flag is inherited.  (:func:`apply_cuts_gather` also gathers ``j_rel`` and ``j_x``.)
-    """
-    r = apply_cuts_gather(seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_par, j_seg, j_ua, j_ub, j_la, j_lb, cut,
-                          np.zeros(j_seg.shape[0], np.int32), np.empty(0, np.float32))
-    return r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8], r[9], r[10], r[11], r[12]
-
-
-@njit(cache=True, nogil=True)
-def apply_cuts_gather(seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_par, j_seg, j_ua, j_ub, j_la, j_lb, cut,
-                      j_rel, j_x):
-    """:func:`apply_cuts`, its 13 results and the kept junctions' ``j_rel`` and ``j_x`` (``j_x``'s
-    empty if it is not one per junction), gathered as they are kept (the numpy
-    gathers after the kernel took as long as the kernel on a head).
+    Returns the new per-pixel ``seg``, the new segment/junction tables (same layout as
+    :func:`row_segments`; pieces keep row order), each kept junction's old index, and the kept
+    junctions' ``j_rel`` and ``j_x`` (``j_x`` empty in, empty out: segments without located
+    boundaries) -- 15 arrays.  A piece's parity flag is inherited.  The gathers are done as the
+    junctions are kept (as numpy gathers after the kernel they took as long as the kernel on a head).
 
     The new ``seg`` is written once, row by row, where the pieces are in row order with disjoint
     spans inside the image (as :func:`row_segments` makes them): a piece's span by a vector
