@@ -8,8 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._common import BLUE, CYAN, GREEN, NONE
-from .segments import run_starts
+from ._common import BLUE, CYAN, GREEN, NONE, run_starts
 
 
 # -- decoder front end (stages 1-3): row primitives shared by the staged and the fused path -------

@@ -420,6 +420,7 @@ def step_guard(img, lut, box, region, mask, column, stripe, conf, reach, ratio, 
             base = e
     return n
 
+
 @njit(cache=True, nogil=True)
 def bridge_cuts(j_x, seg_j0, seg_j1, ratio, pre):
     """Junctions of unlocated boundaries whose bridge does not fit the spacing on both sides.

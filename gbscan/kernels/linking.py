@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._common import CYAN, NONE, ctz64
+from ._common import CYAN, NONE, run_starts
 from .segments import _vertical_votes_sorted
 
 
@@ -305,35 +305,6 @@ def _row_keys(sr, tr, lr, lu, rr, ru, n_seg, key):
 
 
 @njit(cache=True, nogil=True)
-def _key_runs(key, st):
-    # the starts of the runs of equal keys along a row into st[0 .. n-1], st[n] = W (W >= 1): 64
-    # pixel pairs at a time, a bit mask of the changes (vectorised), one step per change; returns n
-    W = key.shape[0]
-    st[0] = 0
-    n = np.uint64(1)
-    m1 = W - 1
-    a = key[:m1]
-    b = key[1:]
-    base = 0
-    while base + 64 <= m1:
-        A = a[base:base + 64]
-        B = b[base:base + 64]
-        m = np.uint64(0)
-        for t in range(64):
-            m |= np.uint64(A[t] != B[t]) << np.uint64(t)
-        while m != np.uint64(0):
-            st[n] = base + ctz64(m) + 1
-            n += np.uint64(1)
-            m &= m - np.uint64(1)
-        base += 64
-    for u in range(base, m1):
-        st[n] = u + 1
-        n += np.uint64(a[u] != b[u])
-    st[n] = W
-    return np.int64(n)
-
-
-@njit(cache=True, nogil=True)
 def vertical_votes(labels, seg, rel, n_seg):
     """Paper step 2 kernel: relate every segment to the overlapping segments of the row above.
 
@@ -376,7 +347,7 @@ def _votes_counted(labels, seg, rel, n_seg, key):
         if W == 0:
             continue
         _row_keys(seg[v], seg[v - 1], labels[v], labels[v - 1], rel[v], rel[v - 1], n_seg, key)
-        nk = _key_runs(key, st)
+        nk = run_starts(key, st)
         for i in range(nk):
             kk0 = np.int64(key[st[i]])
             if kk0 < 0:    # no vote (a pixel without a segment or a label, or above one)

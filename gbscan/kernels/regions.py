@@ -12,6 +12,19 @@ from ._common import BLUE, CYAN, GREEN, NONE, copy_row, ctz64, fill_row
 
 
 @njit(cache=True, nogil=True)
+def _minmax_nonneg(x):
+    # (min over x >= 0 (2**31-1 if none), max over all) of an int32 row: for a row of regions,
+    # hi < 0 when it has none, lo == hi when it has one (finish_pixels, _abs_row, paint_regions)
+    lo = np.int32(2147483647)
+    hi = np.int32(-2147483648)
+    for u in range(x.size):
+        s = x[u]
+        hi = max(hi, s)
+        lo = min(lo, s if s >= 0 else np.int32(2147483647))
+    return lo, hi
+
+
+@njit(cache=True, nogil=True)
 def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, reg_shift, reg_indexed, reg_margin,
                   contrast, stripe_px, n_stripes, min_contrast, n_codes, conf_floor):
     """Final masks, absolute stripe, column and confidence (see :func:`gbscan.decode.decode`).
@@ -55,12 +68,9 @@ def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, re
     for v in range(H + 1):
         if v < H:  # provisional result of row v
             i = v % 3
-            r0 = np.int32(-1)
-            for u in range(W):
-                r0 = max(r0, region[v, u])
-            single = True
-            for u in range(W):
-                single &= (region[v, u] < 0) | (region[v, u] == r0)
+            lo, hi = _minmax_nonneg(region[v])
+            r0 = max(hi, np.int32(-1))
+            single = hi < 0 or lo == hi
             if single and (r0 < 0 or reg_indexed[r0]):
                 # one indexed region (or none): branch-free with its shift and margin, the
                 # pixel-by-pixel path's operations; its one-pixel gaps are left to that path
@@ -446,18 +456,6 @@ def region_offset_cover(region, relative, stripe_lo, stripe_hi, rmin, rmax, n_st
 
 
 @njit(cache=True, nogil=True)
-def _minmax_nonneg(x):
-    # (min over x >= 0 (2**31-1 if none), max over all)
-    lo = np.int32(2147483647)
-    hi = np.int32(-2147483648)
-    for u in range(x.size):
-        s = x[u]
-        hi = max(hi, s)
-        lo = min(lo, s if s >= 0 else np.int32(2147483647))
-    return lo, hi
-
-
-@njit(cache=True, nogil=True)
 def _sel_region(o, s, k):
     # a row of one segment: its region where the segment is, -1 elsewhere
     m1 = np.int32(-1)
@@ -519,6 +517,7 @@ def paint_regions(seg, rel, seg_region, seg_P):
                     rl[u] = rr[u] + seg_P[s]
                     iso[u] = k < 0
     return region, relative, isolated
+
 
 @njit(cache=True, nogil=True)
 def repaint_segments(seg, seg_row, seg_u0, seg_u1, which, seg_region, region, isolated):
@@ -636,13 +635,7 @@ def _abs_row(column_rel, region, off1, v, kk, tmp, out, weight):
     W = out.shape[0]
     reg = region[v]
     crel = column_rel[v]
-    big = np.int32(2147483647)
-    mx = np.int32(-1)
-    mn = big
-    for u in range(W):
-        r = reg[u]
-        mx = max(mx, r)
-        mn = min(mn, r if r >= 0 else big)
+    mn, mx = _minmax_nonneg(reg)
     if mx < 0:   # no region in the row: no columns
         return False
     a = reg[:W - 1]

@@ -8,46 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._common import BLUE, CYAN, GREEN, NONE, copy_row, ctz64, fill_row
-
-
-@njit(cache=True, nogil=True)
-def run_starts(row, rs):
-    """Run-length encode one row of labels (W,) (W >= 1): the runs' first pixels into ``rs[0 ..
-    n-1]`` and ``rs[n] = W`` (rs: (W + 1,) int32); returns n.  64 pixel pairs at a time: a bit
-    mask of the label changes (a vector loop), then one step per change, its position the mask's
-    trailing-zero count (as ``linking._key_runs``); the row's last block is the 64 pairs that end
-    it, less those the block before took.  Rows under 65 px: branch-free, pixel by pixel."""
-    W = row.size
-    rs[0] = 0
-    n = np.uint64(1)
-    m1 = W - 1            # pixel pairs (u, u + 1)
-    a = row[:m1]
-    b = row[1:]
-    if m1 >= 64:
-        base = 0
-        while base < m1:
-            lo = 0
-            if base + 64 > m1:     # the last block: pairs base - lo .. base - 1 are done
-                lo = base - (m1 - 64)
-                base = m1 - 64
-            A = a[base:base + 64]
-            B = b[base:base + 64]
-            m = np.uint64(0)
-            for t in range(64):
-                m |= np.uint64(A[t] != B[t]) << np.uint64(t)
-            m = (m >> np.uint64(lo)) << np.uint64(lo)
-            while m != np.uint64(0):
-                rs[n] = base + ctz64(m) + 1
-                n += np.uint64(1)
-                m &= m - np.uint64(1)
-            base += 64
-    else:
-        for u in range(m1):
-            rs[n] = u + 1
-            n += np.uint64(a[u] != b[u])
-    rs[n] = W
-    return np.int64(n)
+from ._common import BLUE, CYAN, GREEN, NONE, copy_row, fill_row, run_starts
 
 
 @njit(cache=True, nogil=True)
@@ -768,6 +729,7 @@ def fit_junctions(j_x, seg_j0, seg_j1, coef):
                         out[j] = acc[j - h]
     return out
 
+
 @njit(cache=True, nogil=True)
 def _located_cs(j_x, j_bnd, stripe_px, j0, j1, xs, cs):
     # the located boundaries j0 .. j1-1 of a segment in increasing order (a boundary not at least
@@ -990,6 +952,7 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
             p += 1
     return col
 
+
 @njit(cache=True, nogil=True)
 def _end_quadratic(xs, cs, i0, m, x_ref):
     # least-squares c = a + b t + q t^2, t = x - x_ref, through the m points xs/cs[i0 : i0 + m]
@@ -1080,6 +1043,7 @@ def select_columns(col_all, seg_row, seg_u0, seg_u1, seg_ok):
         if u < W:
             fill_row(crow[u:W], nan)
     return col, True
+
 
 @njit(cache=True, nogil=True)
 def link_votes(comp, col_rel, col_abs, max_gap_px):
