@@ -156,15 +156,22 @@ def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, re
             c = pc[i, u]
             ok[u] = (pm[i, u] == 0) & (((pm[iu, u] == 0) & (abs(pc[iu, u] - c) <= half)) |
                                        ((pm[idn, u] == 0) & (abs(pc[idn, u] - c) <= half)))
+        # (the code read before its select and the confidence clamped by selects: so these two
+        # loops vectorise on AVX2 too, the kernel 0.42x on a plane filling a Zen 3's frame)
         for u in range(W):
-            mask[f, u] = pm[i, u] if pm[i, u] != 0 else (np.uint8(0) if ok[u] else np.uint8(5))
+            p = pm[i, u]
+            alt = np.uint8(5) & (np.uint8(0) - np.uint8(not ok[u]))
+            mask[f, u] = p if p != 0 else alt
         for u in range(W):
             column[f, u] = pc[i, u] if ok[u] else np.float32(np.nan)
         for u in range(W):
             stripe[f, u] = ps[i, u] if ok[u] else np.int32(-1)
         for u in range(W):
-            cc = min(max((contrast[f, u] - min_contrast) * inv_mc, 0.0), 1.0)
-            conf[f, u] = conf_floor + conf_span * cc * pg[i, u] if ok[u] else 0.0
+            x = (contrast[f, u] - min_contrast) * inv_mc
+            x = x if x > 0.0 else 0.0
+            x = x if x < 1.0 else 1.0
+            val = np.float32(conf_floor + conf_span * x * pg[i, u])
+            conf[f, u] = val if ok[u] else np.float32(0.0)
         for u in range(W):
             column_rel[f, u] = np.float32(np.nan) if region[f, u] < 0 else column_rel[f, u]
         # the count of each code: the row's codes as bits, then a vector count of each one there
