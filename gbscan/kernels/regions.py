@@ -76,10 +76,14 @@ def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, re
                 # pixel-by-pixel path's operations; its one-pixel gaps are left to that path
                 shift = reg_shift[max(r0, 0)]
                 shw = shift * w
+                shf = np.float64(shift)
+                shwf = np.float64(shw)
+                wf = np.float64(w)
+                nsf = np.float64(n_stripes)
                 for u in range(W):
-                    c = column_rel[v, u] + shw
-                    k = relative[v, u] + shift
-                    code = np.uint8(5) if (abs(c - (k * w + hw)) > w) | (k < 0) | (k >= n_stripes) else np.uint8(0)
+                    c = np.float64(column_rel[v, u]) + shwf
+                    k = np.float64(relative[v, u]) + shf
+                    code = np.uint8(5) if (abs(c - (k * wf + hw)) > wf) | (k < 0.0) | (k >= nsf) else np.uint8(0)
                     code = np.uint8(7) if np.isnan(column_rel[v, u]) else code
                     code = np.uint8(5) if inconsistent[v, u] else code
                     code = np.uint8(4) if region[v, u] < 0 else code
