@@ -238,7 +238,8 @@ def test_upsample_exact_on_a_linear_column():
     assert counts.sum() == H * W and counts[0] == ok.sum()
 
 
-def test_exact_half_expansion_equals_the_general_loop():
+@pytest.mark.parametrize("stripe_px", [8.0, 6.0])
+def test_exact_half_expansion_equals_the_general_loop(stripe_px):
     """The loop for an exact half (2x2 full pixels per coarse pixel) gives what the loop for any
     factor gives, bit for bit: random columns, masks and regions with holes, so that every
     neighbour bit and mask branch occurs."""
@@ -253,15 +254,15 @@ def test_exact_half_expansion_equals_the_general_loop():
     gx, gy, nb = kernels._slopes(col, region, 8.0)
     assert {0, 1, 2, 3} <= set(np.unique(nb & 3)) and {0, 4, 8, 12} <= set(np.unique(nb & 12))
     outs = []
-    for o in (kernels._upsample_x2(col, conf, mask, gx, gy, nb, 8.0, NO_BOUNDARY, RIM),
-              kernels._upsample_any(2 * h, 2 * w, col, conf, mask, gx, gy, nb, 8.0, NO_BOUNDARY, RIM, 0.2)):
+    for o in (kernels._upsample_x2(col, conf, mask, gx, gy, nb, stripe_px, NO_BOUNDARY, RIM),
+              kernels._upsample_any(2 * h, 2 * w, col, conf, mask, gx, gy, nb, stripe_px, NO_BOUNDARY, RIM, 0.2)):
         outs.append(list(o[:4]) + [o[4].sum(axis=0)])
     for a, b in zip(*outs):
         assert a.tobytes() == b.tobytes()
     m = outs[0][3]
     assert {0, RIM, NO_BOUNDARY} <= set(np.unique(m)) and outs[0][4].sum() == 4 * h * w
     # and upsample_stripes takes the exact-half loop for these sizes
-    got = kernels.upsample_stripes(2 * h, 2 * w, col, np.zeros((h, w), np.int32), conf, mask, region, 8.0,
+    got = kernels.upsample_stripes(2 * h, 2 * w, col, np.zeros((h, w), np.int32), conf, mask, region, stripe_px,
                                    NO_BOUNDARY, RIM)
     for a, b in zip(got, outs[0]):
         assert a.tobytes() == b.tobytes()
@@ -445,3 +446,84 @@ def test_lit_window_is_shrunk_decoded_and_expanded_alone():
     cover, wrong = scores(sm, r)
     cover_whole, wrong_whole = scores(whole, r)
     assert wrong == wrong_whole == 0 and cover > 75 and abs(cover - cover_whole) < 2.5
+
+
+def _slopes_plain(col, region, limit):
+    """The coarse slopes as pixel loops with branches (the kernel's rules written plainly): pairs of
+    neighbours on one surface, their differences added into zeros in pair order, halved where two."""
+    h, w = col.shape
+    gx = np.zeros((h, w), np.float32)
+    gy = np.zeros((h, w), np.float32)
+    nb = np.zeros((h, w), np.uint8)
+    for i in range(h):
+        pair = [bool(region[i, j] == region[i, j + 1] and abs(col[i, j + 1] - col[i, j]) < limit) for j in range(w - 1)]
+        for j in range(w):
+            right = j < w - 1 and pair[j]
+            left = j > 0 and pair[j - 1]
+            nb[i, j] = (1 if right else 0) | (2 if left else 0)
+            if right and left:
+                gx[i, j] = np.float32(0.5 * (np.float32(col[i, j + 1] - col[i, j]) + np.float32(col[i, j] - col[i, j - 1])))
+            elif right:
+                gx[i, j] = col[i, j + 1] - col[i, j]
+            elif left:
+                gx[i, j] = col[i, j] - col[i, j - 1]
+    for i in range(h - 1):
+        for j in range(w):
+            d = np.float32(col[i + 1, j] - col[i, j])
+            if region[i, j] == region[i + 1, j] and abs(d) < limit:
+                nb[i, j] |= 4
+                nb[i + 1, j] |= 8
+                gy[i, j] = np.float32(gy[i, j] + d)
+                gy[i + 1, j] = np.float32(gy[i + 1, j] + d)
+    both = (nb & 12) == 12
+    gy[both] = (gy[both] * np.float32(0.5)).astype(np.float32)
+    return gx, gy, nb
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_coarse_slopes_equal_their_rules_written_plainly_bit_for_bit(seed):
+    # the branch-free row loops against the pixel loops, NaN columns, signed zeros and edges included
+    rng = np.random.default_rng(seed)
+    for _ in range(40):
+        h, w = int(rng.integers(1, 10)), int(rng.integers(1, 10))
+        col = (rng.normal(20.0, 3.0, (h, w)) * rng.integers(0, 2)).astype(np.float32)
+        col[rng.random((h, w)) < 0.2] = np.nan
+        col[rng.random((h, w)) < 0.1] = -0.0
+        region = rng.integers(-1, 2, (h, w)).astype(np.int32)
+        limit = float(rng.choice([0.5, 4.0, 8.0]))
+        got = kernels._slopes(col, region, limit)
+        want = _slopes_plain(col, region, limit)
+        for g, e in zip(got, want):
+            assert g.dtype == e.dtype
+            assert np.array_equal(g.view(np.uint32) if g.dtype == np.float32 else g,
+                                  e.view(np.uint32) if e.dtype == np.float32 else e)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_general_expansion_equals_the_per_pixel_rule(seed):
+    """The general loop (coarse rows gathered, each output by selects) against ``_expanded`` called
+    pixel by pixel with each full pixel's nearest coarse pixel, for factors other than 2."""
+    rng = np.random.default_rng(seed)
+    h, w = int(rng.integers(3, 9)), int(rng.integers(3, 9))
+    H, W = int(h * rng.uniform(1.2, 2.6)), int(w * rng.uniform(1.2, 2.6))
+    col = (40 + 1.1 * np.arange(w)[None, :] + rng.normal(0, 0.4, (h, w))).astype(np.float32)
+    mask = np.where(rng.random((h, w)) < 0.25, rng.integers(1, 8, (h, w)), 0).astype(np.uint8)
+    region = np.where(rng.random((h, w)) < 0.15, 1, 0).astype(np.int32)
+    region[mask != 0] = -1
+    col[mask != 0] = np.nan
+    conf = rng.random((h, w)).astype(np.float32)
+    stripe_px = float(rng.choice([8.0, 6.0]))
+    gx, gy, nb = kernels._slopes(col, region, stripe_px)
+    co, so, fo, mo, counts4 = kernels._upsample_any(H, W, col, conf, mask, gx, gy, nb, stripe_px, NO_BOUNDARY, RIM, 0.2)
+    dxs, xbit, jidx = kernels._coarse_columns(w, W, 0.2)
+    for v in range(H):
+        i, dy, ybit = kernels._coarse_row(v, h, H, 0.2)
+        for u in range(W):
+            j = jidx[u]
+            m, x, s = kernels._expanded(mask[i, j], nb[i, j], xbit[u] | ybit, col[i, j], gx[i, j], gy[i, j], dxs[u], dy,
+                                        stripe_px, NO_BOUNDARY, RIM)
+            assert mo[v, u] == m
+            assert np.float32(co[v, u]).tobytes() == np.float32(x).tobytes()
+            assert so[v, u] == s
+            assert fo[v, u] == (conf[i, j] if m == 0 else 0.0)
+    assert np.array_equal(counts4.sum(axis=0), np.bincount(mo.ravel() & 15, minlength=16))

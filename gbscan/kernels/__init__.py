@@ -52,6 +52,6 @@ from .guards import _brightness  # noqa: F401  (tests)
 from .pointmap import *  # noqa: F401,F403
 from .regions import *  # noqa: F401,F403
 from .resample import *  # noqa: F401,F403
-from .resample import _slopes, _upsample_any, _upsample_x2  # noqa: F401  (tests)
+from .resample import _coarse_columns, _coarse_row, _expanded, _slopes, _upsample_any, _upsample_x2  # noqa: F401  (tests)
 from .segments import *  # noqa: F401,F403
 from .segments import _merge_runs_pass, _vertical_votes_sorted  # noqa: F401  (unwrap, tests)
