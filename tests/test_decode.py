@@ -2694,3 +2694,36 @@ def test_paste_window_equals_full_and_copy():
             assert got.dtype == want.dtype
             np.testing.assert_array_equal(got, want)
             np.testing.assert_array_equal(kernels.paste_window(a, H, W, y0, x0, a.dtype.type(fill)), want)
+
+
+def test_vector_report_reads_llvm_remarks_per_kernel_line():
+    """scripts/vector_report.py's parsing: per line of gbscan/kernels the widths LLVM vectorised a
+    loop with and its reasons for not; a line vectorised in one inlined copy counts as vectorised,
+    lines of other files are ignored, and the report names the function and the source line."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "vector_report.py"
+    spec = importlib.util.spec_from_file_location("vector_report", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    src = (Path(mod.KERNELS) / "regions.py").read_text().splitlines()
+    line = next(i for i, t in enumerate(src, 1) if t.startswith("def finish_pixels")) + 2
+    stderr = "\n".join([
+        f"remark: regions.py:{line}:1: loop not vectorized: the cost-model indicates that vectorization is not beneficial",
+        f"remark: regions.py:{line}:1: loop not vectorized",
+        f"remark: regions.py:{line + 1}:1: loop not vectorized: call instruction cannot be vectorized",
+        f"remark: regions.py:{line + 1}:1: vectorized loop (vectorization width: 8, interleaved count: 4)",
+        "remark: arrayobj.py:2456:1: loop not vectorized",
+        "remark: <unknown>:0:0: loop not vectorized",
+        "some other line",
+    ])
+    found = mod.parse(stderr)
+    assert set(found) == {("regions.py", line), ("regions.py", line + 1)}
+    assert found[("regions.py", line)]["widths"] == set()
+    assert found[("regions.py", line)]["why"] == {"the cost-model indicates that vectorization is not beneficial"}
+    assert found[("regions.py", line + 1)]["widths"] == {8}
+    text = mod.report(found, show_all=False)
+    assert f"regions.py:{line} finish_pixels: " in text and "NOT vectorised: the cost-model" in text
+    assert f"regions.py:{line + 1} " not in text
+    assert f"regions.py:{line + 1} finish_pixels: " in mod.report(found, show_all=True)

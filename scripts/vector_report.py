@@ -1,0 +1,130 @@
+"""Which loops of the decoder's kernels did LLVM vectorise on this machine, and why not the others?
+
+    python scripts/vector_report.py [--width 640|1280] [--all] [--out report.txt]
+
+The kernels' row loops are written so that LLVM vectorises them (see ``gbscan/kernels/__init__``,
+"Row loops that vectorise").  Whether it does depends on the CPU numba compiles for: a loop that
+vectorises with AVX-512 can stay scalar with AVX2 alone (a byte read on one branch of a select,
+an int64 -> float64 conversion), and run several times slower.  This script compiles the kernels
+afresh (an empty numba cache in a temporary folder, debug line information on) in a child process
+with LLVM's loop-vectoriser remarks switched on, decodes one simulated frame (``--width 1280``: a
+1280x1024 frame, so the resampled decoder's kernels compile too), and prints, per source line of
+``gbscan/kernels`` that holds a loop LLVM looked at:
+
+* by default the loops that were **never** vectorised in any function they were inlined into, with
+  LLVM's reasons ("the cost-model indicates that vectorization is not beneficial" is the one to
+  look at first: the loop could be vectorised, but this CPU would not gain -- often a select that
+  reads memory on one branch only); loops over runs, segments or junctions are sequential by
+  nature and are expected here;
+* with ``--all`` every loop, vectorised ones with their width.
+
+It takes a few minutes (every kernel compiles).  The numba cache of the checkout is not touched.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import tempfile
+from collections import defaultdict
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+KERNELS = ROOT / "gbscan" / "kernels"
+REMARK = re.compile(r"^remark: (?P<file>[\w.]+):(?P<line>\d+):\d+: (?P<msg>.*)$")
+
+
+def child(width: int) -> int:
+    """Compile and run the decoder once with the remarks on (LLVM writes them to stderr)."""
+    import llvmlite.binding as ll
+
+    for opt in ("-pass-remarks=loop-vectorize", "-pass-remarks-missed=loop-vectorize",
+                "-pass-remarks-analysis=loop-vectorize"):
+        ll.set_option("", opt)
+    sys.path.insert(0, str(ROOT))
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from bench_decode import frames
+    from gbscan.decode import decode
+    from gbscan.pattern import PatternSpec
+
+    decode(frames(width, "plane").image, PatternSpec())
+    decode(frames(width, "head").image, PatternSpec())
+    return 0
+
+
+def parse(stderr: str) -> dict[tuple[str, int], dict]:
+    """Per (file, line) of gbscan/kernels: vectorisation widths seen and reasons for not."""
+    kernel_files = {p.name for p in KERNELS.glob("*.py")}
+    out: dict[tuple[str, int], dict] = defaultdict(lambda: {"widths": set(), "why": set()})
+    for raw in stderr.splitlines():
+        m = REMARK.match(raw.strip())
+        if not m or m["file"] not in kernel_files or int(m["line"]) == 0:
+            continue
+        entry = out[(m["file"], int(m["line"]))]   # (a bare "loop not vectorized": seen, no reason)
+        msg = m["msg"]
+        w = re.search(r"vectorization width: (\d+)", msg)
+        if msg.startswith("vectorized loop") and w:
+            entry["widths"].add(int(w[1]))
+        elif msg != "loop not vectorized":
+            entry["why"].add(msg.replace("loop not vectorized: ", ""))
+    return out
+
+
+def source_line(file: str, line: int) -> tuple[str, str]:
+    """The function a line belongs to and the line's text."""
+    lines = (KERNELS / file).read_text().splitlines()
+    fn = "?"
+    for i in range(min(line, len(lines)) - 1, -1, -1):
+        if lines[i].startswith("def "):
+            fn = lines[i][4:lines[i].index("(")]
+            break
+    return fn, lines[line - 1].strip() if 0 < line <= len(lines) else ""
+
+
+def report(found: dict, show_all: bool) -> str:
+    rows = []
+    n_vec = sum(1 for v in found.values() if v["widths"])
+    for (file, line), v in sorted(found.items()):
+        if v["widths"] and not show_all:
+            continue
+        fn, text = source_line(file, line)
+        if v["widths"]:
+            status = "vectorised, width " + "/".join(str(w) for w in sorted(v["widths"]))
+        else:
+            status = "NOT vectorised: " + ("; ".join(sorted(v["why"])) or "(no reason given)")
+        rows.append(f"{file}:{line} {fn}: {text}\n    {status}")
+    head = (f"# {len(found)} loop lines of gbscan/kernels seen by LLVM's loop vectoriser, {n_vec} vectorised in at "
+            f"least one function they were inlined into; {'all' if show_all else 'the others'} below")
+    return "\n".join([head] + rows) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--width", type=int, choices=(640, 1280), default=640,
+                    help="simulated frame width (1280: the resampled decoder's kernels too)")
+    ap.add_argument("--all", action="store_true", help="list vectorised loops as well")
+    ap.add_argument("--out", help="also write the report to this file")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        return child(args.width)
+    with tempfile.TemporaryDirectory(prefix="gbscan-vec-") as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache, NUMBA_DEBUGINFO="1", PYTHONWARNINGS="ignore")
+        print("compiling every kernel afresh with LLVM's remarks on (a few minutes) ...", file=sys.stderr, flush=True)
+        r = subprocess.run([sys.executable, __file__, "--child", "--width", str(args.width)], env=env,
+                           capture_output=True, text=True)
+    if r.returncode != 0:
+        print(r.stderr[-3000:], file=sys.stderr)
+        print("vector_report: the decode with remarks failed (its error above)", file=sys.stderr)
+        return 1
+    text = report(parse(r.stderr), args.all)
+    sys.stdout.write(text)
+    if args.out:
+        Path(args.out).write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
