@@ -237,11 +237,11 @@ def drop_orphans(mask, column, stripe, conf, ok_code, code):
             c = np.uint8(cur[u] == ok_code)
             vert[u + 1] = a | b | c
             other[u] = a | b
-        hit = np.uint8(0)
         for u in range(W):
-            x = np.uint8(cur[u] == ok_code) & ~(vert[u] | vert[u + 2] | other[u]) & np.uint8(1)
-            alone[u] = x
-            hit |= x
+            alone[u] = np.uint8(cur[u] == ok_code) & ~(vert[u] | vert[u + 2] | other[u]) & np.uint8(1)
+        hit = np.uint8(0)   # (its own loop: with the OR above, the loop above vectorised 4 bytes wide)
+        for u in range(W):
+            hit |= alone[u]
         if hit:
             n += _unreport_row(alone, cur, column[v], stripe[v], conf[v], code)
     return n
