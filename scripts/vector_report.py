@@ -1,6 +1,6 @@
 """Which loops of the decoder's kernels did LLVM vectorise on this machine, and why not the others?
 
-    python scripts/vector_report.py [--width 640|1280] [--all] [--out report.txt]
+    python scripts/vector_report.py [--width 640|1280] [--missed | --all] [--out report.txt]
 
 The kernels' row loops are written so that LLVM vectorises them (see ``gbscan/kernels/__init__``,
 "Row loops that vectorise").  Whether it does depends on the CPU numba compiles for: a loop that
@@ -11,12 +11,14 @@ with LLVM's loop-vectoriser remarks switched on, decodes one simulated frame (``
 1280x1024 frame, so the resampled decoder's kernels compile too), and prints, per source line of
 ``gbscan/kernels`` that holds a loop LLVM looked at:
 
-* by default the loops that were **never** vectorised in any function they were inlined into, with
-  LLVM's reasons ("the cost-model indicates that vectorization is not beneficial" is the one to
-  look at first: the loop could be vectorised, but this CPU would not gain -- often a select that
-  reads memory on one branch only); loops over runs, segments or junctions are sequential by
-  nature and are expected here;
-* with ``--all`` every loop, vectorised ones with their width.
+* by default the loops LLVM **could** have vectorised but did not, in no function they were inlined
+  into, because "the cost-model indicates that vectorization is not beneficial" on this CPU: the
+  ones to look at (often a select that reads memory on one branch only, or a conversion this CPU
+  has no vector instruction for);
+* with ``--missed`` every line never vectorised, with LLVM's reasons (most are loops over runs,
+  segments or junctions, sequential by nature, or remarks of early passes on a loop body whose
+  loop was vectorised later under its header's line);
+* with ``--all`` every line, vectorised ones with their width.
 
 It takes a few minutes (every kernel compiles).  The numba cache of the checkout is not touched.
 """
@@ -83,11 +85,16 @@ def source_line(file: str, line: int) -> tuple[str, str]:
     return fn, lines[line - 1].strip() if 0 < line <= len(lines) else ""
 
 
-def report(found: dict, show_all: bool) -> str:
+COST_MODEL = "the cost-model indicates that vectorization is not beneficial"
+
+
+def report(found: dict, show: str = "cost-model") -> str:
+    """The report; ``show``: "cost-model" (never vectorised, refused by the cost model), "missed"
+    (never vectorised) or "all"."""
     rows = []
     n_vec = sum(1 for v in found.values() if v["widths"])
     for (file, line), v in sorted(found.items()):
-        if v["widths"] and not show_all:
+        if show != "all" and (v["widths"] or (show == "cost-model" and COST_MODEL not in v["why"])):
             continue
         fn, text = source_line(file, line)
         if v["widths"]:
@@ -95,8 +102,10 @@ def report(found: dict, show_all: bool) -> str:
         else:
             status = "NOT vectorised: " + ("; ".join(sorted(v["why"])) or "(no reason given)")
         rows.append(f"{file}:{line} {fn}: {text}\n    {status}")
+    which = {"all": "all of them", "missed": "the others",
+             "cost-model": "the others that the cost model refused"}[show]
     head = (f"# {len(found)} loop lines of gbscan/kernels seen by LLVM's loop vectoriser, {n_vec} vectorised in at "
-            f"least one function they were inlined into; {'all' if show_all else 'the others'} below")
+            f"least one function they were inlined into; below {which} ({len(rows)})")
     return "\n".join([head] + rows) + "\n"
 
 
@@ -104,7 +113,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--width", type=int, choices=(640, 1280), default=640,
                     help="simulated frame width (1280: the resampled decoder's kernels too)")
-    ap.add_argument("--all", action="store_true", help="list vectorised loops as well")
+    g = ap.add_mutually_exclusive_group()
+    g.add_argument("--missed", action="store_true", help="every line never vectorised, whatever the reason")
+    g.add_argument("--all", action="store_true", help="every line, vectorised ones too")
     ap.add_argument("--out", help="also write the report to this file")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -119,7 +130,7 @@ def main(argv=None) -> int:
         print(r.stderr[-3000:], file=sys.stderr)
         print("vector_report: the decode with remarks failed (its error above)", file=sys.stderr)
         return 1
-    text = report(parse(r.stderr), args.all)
+    text = report(parse(r.stderr), "all" if args.all else "missed" if args.missed else "cost-model")
     sys.stdout.write(text)
     if args.out:
         Path(args.out).write_text(text)

@@ -2723,7 +2723,10 @@ def test_vector_report_reads_llvm_remarks_per_kernel_line():
     assert found[("regions.py", line)]["widths"] == set()
     assert found[("regions.py", line)]["why"] == {"the cost-model indicates that vectorization is not beneficial"}
     assert found[("regions.py", line + 1)]["widths"] == {8}
-    text = mod.report(found, show_all=False)
+    found[("regions.py", line + 2)]["why"].add("call instruction cannot be vectorized")
+    text = mod.report(found)               # the cost model's refusals only
     assert f"regions.py:{line} finish_pixels: " in text and "NOT vectorised: the cost-model" in text
-    assert f"regions.py:{line + 1} " not in text
-    assert f"regions.py:{line + 1} finish_pixels: " in mod.report(found, show_all=True)
+    assert f"regions.py:{line + 1} " not in text and f"regions.py:{line + 2} " not in text
+    missed = mod.report(found, "missed")
+    assert f"regions.py:{line} " in missed and f"regions.py:{line + 2} " in missed and f"regions.py:{line + 1} " not in missed
+    assert f"regions.py:{line + 1} finish_pixels: " in mod.report(found, "all")

@@ -30,10 +30,12 @@ On AVX2 machines (no AVX-512) also: **read every byte-array element before a sel
 ``d[u] = k if c else d[u]`` with ``d`` uint8 the read happens on one branch only; AVX2 has no
 masked load of bytes, so LLVM keeps the whole loop scalar and branchy (12x slower alone, measured
 on a Zen 3), while an AVX-512 machine vectorises it.  ``old = d[u]; d[u] = k if c else old``
-vectorises on both.  (float32/int32 reads on one branch are fine: AVX2 masks 32-bit loads.)  To see
-which loops LLVM vectorised, compile into an empty cache with remarks on: ``NUMBA_CACHE_DIR=$(mktemp
--d) NUMBA_DEBUGINFO=1`` and ``llvmlite.binding.set_option("", "-pass-remarks=loop-vectorize")``
-(and ``-pass-remarks-missed=loop-vectorize``) before the first decode; the remarks name file and line.
+vectorises on both.  Another trap found the same way: an int64 -> float64 conversion (AVX2
+has no vector instruction for it: convert from int32, or compute in float64 throughout).  Branches
+per pixel (``if`` chains choosing among outputs) keep a loop scalar on any CPU: compute every
+candidate and select.  ``python scripts/vector_report.py`` lists the loops LLVM
+could have vectorised on this CPU but did not (it compiles every kernel afresh with LLVM's
+remarks on; ``--missed`` / ``--all`` for more).
 
 The first call compiles (a few seconds, cached on disk afterwards); tests and benchmarks warm up.
 numba's on-disk cache is checked against the calling kernel's own file only: after editing a
