@@ -7,9 +7,10 @@ The kernels' row loops are written so that LLVM vectorises them (see ``gbscan/ke
 vectorises with AVX-512 can stay scalar with AVX2 alone (a byte read on one branch of a select,
 an int64 -> float64 conversion), and run several times slower.  This script compiles the kernels
 afresh (an empty numba cache in a temporary folder, debug line information on) in a child process
-with LLVM's loop-vectoriser remarks switched on, decodes one simulated frame (``--width 1280``: a
-1280x1024 frame, so the resampled decoder's kernels compile too), and prints, per source line of
-``gbscan/kernels`` that holds a loop LLVM looked at:
+with LLVM's loop-vectoriser remarks switched on, decodes simulated frames (``--width 1280``:
+1280x1024 frames, so the resampled decoder's kernels compile too), scans one and writes its cloud
+and meshes, and prints, per source line of ``gbscan/kernels`` and ``gbscan/geomkernels.py`` that
+holds a loop LLVM looked at:
 
 * by default the loops LLVM **could** have vectorised but did not, in no function they were inlined
   into, because "the cost-model indicates that vectorization is not beneficial" on this CPU: the
@@ -35,6 +36,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 KERNELS = ROOT / "gbscan" / "kernels"
+#: the compiled code looked at: the decoder's and cleaning's kernels, and the geometry's (rays,
+#: triangulation, meshes, writers)
+FILES = {p.name: p for p in sorted(KERNELS.glob("*.py"))} | {"geomkernels.py": ROOT / "gbscan" / "geomkernels.py"}
 REMARK = re.compile(r"^remark: (?P<file>[\w.]+):(?P<line>\d+):\d+: (?P<msg>.*)$")
 
 
@@ -48,21 +52,34 @@ def child(width: int) -> int:
     sys.path.insert(0, str(ROOT))
     sys.path.insert(0, str(ROOT / "scripts"))
     from bench_decode import frames
+    from gbscan import sim
+    from gbscan.calibfile import calibration_from_rig
     from gbscan.decode import decode
+    from gbscan.mesh import grid_mesh, write_mesh
     from gbscan.pattern import PatternSpec
+    from gbscan.scan import Scanner
 
     decode(frames(width, "plane").image, PatternSpec())
-    decode(frames(width, "head").image, PatternSpec())
+    head = frames(width, "head").image
+    decode(head, PatternSpec())
+    # a whole scan (rays, triangulation, cleaning, normals), its mesh and the writers
+    h = head.shape[0]
+    rig = sim.paper_rig() if width == 640 else sim.paper_rig(camera_px=(width, h))
+    scan = Scanner(calibration_from_rig(rig, PatternSpec())).scan(head)
+    mesh = grid_mesh(scan.xyz, scan.valid, normals=scan.normals_map)
+    with tempfile.TemporaryDirectory() as d:
+        scan.save_ply(Path(d) / "cloud.ply")
+        for suffix in ("ply", "obj", "stl"):
+            write_mesh(Path(d) / f"mesh.{suffix}", mesh)
     return 0
 
 
 def parse(stderr: str) -> dict[tuple[str, int], dict]:
-    """Per (file, line) of gbscan/kernels: vectorisation widths seen and reasons for not."""
-    kernel_files = {p.name for p in KERNELS.glob("*.py")}
+    """Per (file, line) of the compiled code (FILES): vectorisation widths seen and reasons for not."""
     out: dict[tuple[str, int], dict] = defaultdict(lambda: {"widths": set(), "why": set()})
     for raw in stderr.splitlines():
         m = REMARK.match(raw.strip())
-        if not m or m["file"] not in kernel_files or int(m["line"]) == 0:
+        if not m or m["file"] not in FILES or int(m["line"]) == 0:
             continue
         entry = out[(m["file"], int(m["line"]))]   # (a bare "loop not vectorized": seen, no reason)
         msg = m["msg"]
@@ -76,7 +93,7 @@ def parse(stderr: str) -> dict[tuple[str, int], dict]:
 
 def source_line(file: str, line: int) -> tuple[str, str]:
     """The function a line belongs to and the line's text."""
-    lines = (KERNELS / file).read_text().splitlines()
+    lines = FILES[file].read_text().splitlines()
     fn = "?"
     for i in range(min(line, len(lines)) - 1, -1, -1):
         if lines[i].startswith("def "):
@@ -104,7 +121,7 @@ def report(found: dict, show: str = "cost-model") -> str:
         rows.append(f"{file}:{line} {fn}: {text}\n    {status}")
     which = {"all": "all of them", "missed": "the others",
              "cost-model": "the others that the cost model refused"}[show]
-    head = (f"# {len(found)} loop lines of gbscan/kernels seen by LLVM's loop vectoriser, {n_vec} vectorised in at "
+    head = (f"# {len(found)} loop lines of gbscan/kernels and geomkernels.py seen by LLVM's loop vectoriser, {n_vec} vectorised in at "
             f"least one function they were inlined into; below {which} ({len(rows)})")
     return "\n".join([head] + rows) + "\n"
 
