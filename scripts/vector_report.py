@@ -43,7 +43,8 @@ REMARK = re.compile(r"^remark: (?P<file>[\w.]+):(?P<line>\d+):\d+: (?P<msg>.*)$"
 
 
 def child(width: int) -> int:
-    """Compile and run the decoder once with the remarks on (LLVM writes them to stderr)."""
+    """Compile and run the decoder, a scan and the writers once with the remarks on (LLVM writes
+    them to stderr)."""
     import llvmlite.binding as ll
 
     for opt in ("-pass-remarks=loop-vectorize", "-pass-remarks-missed=loop-vectorize",

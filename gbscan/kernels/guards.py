@@ -646,8 +646,9 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
     of its own writing one array and indexing from 0: so LLVM vectorises it (inside one large
     function it vectorised none, 1.75 ms at 640x480; with the loops apart and two passes, up then
     down, 0.8-1.0 ms; this way 0.5-0.7 ms, the head's lit window 0.25 -> 0.11 ms, the same values
-    bit for bit).  On an AVX2 machine the distance loops stayed scalar until each reads its byte
-    before the select (see the package docstring): the distances 1.2-1.8 -> 0.2-0.3 ms.  float32 throughout, the sums in the same order as a plain loop would add them."""
+    bit for bit).  On an AVX2 machine the distance loops stayed scalar until each read its byte
+    before the select (see the package docstring): the distances 1.2-1.8 -> 0.2-0.3 ms.  float32
+    throughout, the sums in the same order as a plain loop would add them."""
     H, W = mask.shape
     cap = max(min(edge_cap, 254), 0)
     h = rough_rows

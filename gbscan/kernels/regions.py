@@ -161,7 +161,7 @@ def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, re
             ok[u] = (pm[i, u] == 0) & (((pm[iu, u] == 0) & (abs(pc[iu, u] - c) <= half)) |
                                        ((pm[idn, u] == 0) & (abs(pc[idn, u] - c) <= half)))
         # (the code read before its select and the confidence clamped by selects: so these two
-        # loops vectorise on AVX2 too, the kernel 0.42x on a plane filling a Zen 3's frame)
+        # loops vectorise on AVX2 too; the kernel alone 0.80x on a plane, 0.87x on a face, Zen 3)
         for u in range(W):
             p = pm[i, u]
             alt = np.uint8(5) & (np.uint8(0) - np.uint8(not ok[u]))
@@ -172,8 +172,8 @@ def finish_pixels(reason, labels, region, relative, column_rel, inconsistent, re
             stripe[f, u] = ps[i, u] if ok[u] else np.int32(-1)
         for u in range(W):
             x = (contrast[f, u] - min_contrast) * inv_mc
-            x = x if x > 0.0 else 0.0
-            x = x if x < 1.0 else 1.0
+            x = 0.0 if 0.0 > x else x      # min(max(x, 0), 1) as selects, NaN and -0.0 kept alike
+            x = 1.0 if 1.0 < x else x
             val = np.float32(conf_floor + conf_span * x * pg[i, u])
             conf[f, u] = val if ok[u] else np.float32(0.0)
         for u in range(W):
