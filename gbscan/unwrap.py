@@ -559,6 +559,8 @@ def split_doubtful(labels: np.ndarray, segs: Segments, believable: np.ndarray, p
     return _apply_cuts(segs, cut)
 
 
+_NO_JX = np.empty(0, np.float32)   # _apply_cuts' j_x where the segments have none
+
 
 def _apply_cuts(segs: Segments, cut: np.ndarray) -> Segments:
     """Split segments at the transitions flagged in ``cut`` (one kernel, shared by the cutters)."""
@@ -569,9 +571,6 @@ def _apply_cuts(segs: Segments, cut: np.ndarray) -> Segments:
                            segs.j_ua, segs.j_ub, segs.j_la, segs.j_lb, cut, segs.j_rel, j_x)
     return Segments(r[0], segs.rel, r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8], r[9], r[10], r[11], r[13],
                     None if segs.j_x is None else r[14])
-
-
-_NO_JX = np.empty(0, np.float32)   # _apply_cuts' j_x where the segments have none
 
 
 def cut_depth_edges(segs: Segments, ratio: float) -> Segments:

@@ -390,6 +390,7 @@ def _votes_counted(labels, seg, rel, n_seg, key):
     return (out[0, :ne].copy(), out[1, :ne].copy(), out[2, :ne].copy(), out[3, :ne].copy(), out[4, :ne].copy(),
             out[5, :ne].copy())
 
+
 # -- the votes of unwrap.link_components grouped (was numpy group-by glue) --------------------------
 @njit(cache=True, nogil=True)
 def best_vote_offsets(vc, k, good, vl, vv, n_comp, H, W):

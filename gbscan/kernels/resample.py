@@ -185,19 +185,11 @@ def encode_rgb(lin, enc):
 
 
 @njit(cache=True, nogil=True)
-def _pairs_row(c, r, limit, P, D):
-    # P[j + 1], D[j + 1]: pair (j, j + 1) of the row on one surface, and its column difference
-    for j in range(c.size - 1):
-        D[j + 1] = c[j + 1] - c[j]
-    for j in range(c.size - 1):
-        P[j + 1] = np.uint8((r[j] == r[j + 1]) & (abs(c[j + 1] - c[j]) < limit))      # NaN: 0
-
-
-@njit(cache=True, nogil=True)
-def _vpairs_row(c0, c1, r0, r1, limit, F, Dv):
-    # F[j], Dv[j]: pair (row 0, row 1) of column j on one surface, and its column difference
+def _pairs(c0, c1, r0, r1, limit, F, D):
+    # the pairs (c0[j], c1[j]) (neighbours along a row or across rows): F[j] 1 where both are on
+    # one surface (same region, columns within limit; NaN: 0), D[j] = c1[j] - c0[j]
     for j in range(c0.size):
-        Dv[j] = c1[j] - c0[j]
+        D[j] = c1[j] - c0[j]
     for j in range(c0.size):
         F[j] = np.uint8((r0[j] == r1[j]) & (abs(c1[j] - c0[j]) < limit))
 
@@ -262,12 +254,13 @@ def _slopes(col, region, limit):
         up = (i + 1) % 2
         dn = i % 2
         if i + 1 < h:
-            _vpairs_row(col[i], col[i + 1], region[i], region[i + 1], limit, F[dn], Dv[dn])
+            _pairs(col[i], col[i + 1], region[i], region[i + 1], limit, F[dn], Dv[dn])
         Fu = F[up] if i > 0 else Fz
         Du = Dv[up] if i > 0 else Dz
         Fd = F[dn] if i + 1 < h else Fz
         Dd = Dv[dn] if i + 1 < h else Dz
-        _pairs_row(col[i], region[i], limit, P, D)
+        c, r = col[i], region[i]
+        _pairs(c[:w - 1], c[1:], r[:w - 1], r[1:], limit, P[1:w], D[1:w])   # pair (j, j + 1) at j + 1
         _gx_row(P, D, gx[i])
         _nb_row(P, Fu, Fd, nb[i])
         _gy_row(Fu, Du, Fd, Dd, gy[i])
