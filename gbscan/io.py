@@ -227,16 +227,16 @@ def read_image_rgb(path, *, size: tuple[int, int] | None = None, what: str = "im
     if bayer:
         if not grey:
             raise GBError(f"{what} {path} is a colour image, not a raw Bayer mosaic; drop --bayer")
-        img = demosaic(img.reshape(img.shape[:2]), bayer)[:, :, ::-1]   # BGR like imread's
-        grey = False
-    if img.dtype == np.uint16:
-        img = (img >> 8).astype(np.uint8)
-    if grey:
+        rgb = demosaic(img.reshape(img.shape[:2]), bayer)
+    elif grey:
         raise GBError(f"{what} {path} is a grey image; the green-blue decoder needs a colour (RGB) image "
                       "(a camera's raw Bayer mosaic: give --bayer PATTERN, e.g. RGGB)")
-    if img.shape[2] == 4:
-        img = img[:, :, :3]
-    rgb = np.ascontiguousarray(img[:, :, ::-1])
+    elif img.shape[2] not in (3, 4):
+        raise GBError(f"{what} {path} has {img.shape[2]} channels; expected a colour image (3 channels, or 4 with alpha)")
+    else:   # (OpenCV's swap: 30x faster than numpy's copy of img[:, :, ::-1])
+        rgb = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    if rgb.dtype == np.uint16:
+        rgb = (rgb >> 8).astype(np.uint8)
     if size is not None and (rgb.shape[1], rgb.shape[0]) != tuple(size):
         raise GBError(f"{what} {path} is {rgb.shape[1]}x{rgb.shape[0]} but {size[0]}x{size[1]} was expected "
                       "(the calibration's camera size); use images from the calibrated camera")

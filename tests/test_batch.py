@@ -111,6 +111,23 @@ def test_folder_outputs_and_manifest(tmp_path):
     assert not list((tmp_path / "out").glob(".*"))  # no temporaries left
 
 
+def test_a_point_is_finite_in_all_three_coordinates(tmp_path):
+    """A generic processor's xyz may be non-finite in one coordinate only: no such point is counted
+    or written."""
+    from gbscan.batch import OutputSpec, _write_outputs
+
+    rng = np.random.default_rng(5)
+    xyz = rng.normal(size=(H, W, 3)).astype(np.float32)
+    for c, bad in ((0, np.inf), (1, np.nan), (2, -np.inf)):
+        xyz[rng.random((H, W)) < 0.1, c] = bad
+    ok = np.isfinite(xyz).all(axis=2)
+    assert 0 < ok.sum() < H * W - 3
+    row = _write_outputs(OutputSpec(str(tmp_path), ply=True), 3, FrameResult(xyz))
+    assert row["points"] == ok.sum()
+    assert f"element vertex {ok.sum()}\n".encode() in (tmp_path / "frame_000003.ply").read_bytes()
+    np.testing.assert_array_equal(np.load(tmp_path / "frame_000003.xyz.npy"), xyz)
+
+
 def test_ply_reads_back_in_open3d(tmp_path):
     o3d = pytest.importorskip("open3d")
     pts = np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32)

@@ -85,10 +85,20 @@ def test_corrupt_yaml_is_named(tmp_path):
 
 
 def test_images(tmp_path):
-    rgb = np.zeros((4, 5, 3), np.uint8)
-    rgb[..., 1] = 200
+    import cv2
+
+    rgb = np.random.default_rng(3).integers(0, 256, (4, 5, 3), dtype=np.uint8)   # channel order matters
     p = write_png(tmp_path / "a.png", rgb)
-    np.testing.assert_array_equal(read_image_rgb(p), rgb)
+    got = read_image_rgb(p)
+    np.testing.assert_array_equal(got, rgb)
+    assert got.flags["C_CONTIGUOUS"] and got.dtype == np.uint8
+    # 16-bit colour: the high byte; 4 channels: alpha dropped
+    rgb16 = (rgb.astype(np.uint16) << 8) | 0x7F
+    assert cv2.imwrite(str(tmp_path / "a16.png"), np.ascontiguousarray(rgb16[:, :, ::-1]))
+    np.testing.assert_array_equal(read_image_rgb(tmp_path / "a16.png"), rgb)
+    bgra = np.dstack([rgb[:, :, ::-1], np.full((4, 5), 9, np.uint8)])
+    assert cv2.imwrite(str(tmp_path / "a4.png"), bgra)
+    np.testing.assert_array_equal(read_image_rgb(tmp_path / "a4.png"), rgb)
     with pytest.raises(GBError, match="5x4 but 640x480"):
         read_image_rgb(p, size=(640, 480))
     write_png(tmp_path / "g.png", rgb[..., 1])
