@@ -84,7 +84,7 @@ def test_corrupt_yaml_is_named(tmp_path):
     assert "bad.yaml" in str(e.value)
 
 
-def test_images(tmp_path):
+def test_images(tmp_path, monkeypatch):
     import cv2
 
     rgb = np.random.default_rng(3).integers(0, 256, (4, 5, 3), dtype=np.uint8)   # channel order matters
@@ -99,6 +99,10 @@ def test_images(tmp_path):
     bgra = np.dstack([rgb[:, :, ::-1], np.full((4, 5), 9, np.uint8)])
     assert cv2.imwrite(str(tmp_path / "a4.png"), bgra)
     np.testing.assert_array_equal(read_image_rgb(tmp_path / "a4.png"), rgb)
+    with monkeypatch.context() as m:   # (no writer makes 2-channel files; a reader might return one)
+        m.setattr(cv2, "imread", lambda *a: np.zeros((4, 5, 2), np.uint8))
+        with pytest.raises(GBError, match="a.png has 2 channels"):
+            read_image_rgb(p)
     with pytest.raises(GBError, match="5x4 but 640x480"):
         read_image_rgb(p, size=(640, 480))
     write_png(tmp_path / "g.png", rgb[..., 1])
