@@ -330,21 +330,16 @@ def upsample_stripes(H, W, column, stripe, conf, mask, region, stripe_px, no_bou
     h, w = column.shape
     gx, gy, nb = _slopes(column, region, float(stripe_px))
     if H == 2 * h and W == 2 * w and centre_tol < 0.25:
-        col_o, stripe_o, conf_o, mask_o, counts4 = _upsample_x2(column, conf, mask, gx, gy, nb, stripe_px, no_boundary,
-                                                                edge_code)
-    else:
-        col_o, stripe_o, conf_o, mask_o, counts4 = _upsample_any(H, W, column, conf, mask, gx, gy, nb, stripe_px,
-                                                                 no_boundary, edge_code, centre_tol)
-    counts = counts4[0] + counts4[1] + counts4[2] + counts4[3]
-    return col_o, stripe_o, conf_o, mask_o, counts
+        return _upsample_x2(column, conf, mask, gx, gy, nb, stripe_px, no_boundary, edge_code)
+    return _upsample_any(H, W, column, conf, mask, gx, gy, nb, stripe_px, no_boundary, edge_code, centre_tol)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _new_maps(H, W):
-    # upsample_stripes' outputs: column, stripe, confidence, mask (H, W) and four interleaved
-    # histograms of the mask codes (4, 16) (no chain of increments)
+    # upsample_stripes' outputs: column, stripe, confidence, mask (H, W) and the count of each mask
+    # code (16,)
     return (np.empty((H, W), np.float32), np.empty((H, W), np.int32), np.empty((H, W), np.float32),
-            np.empty((H, W), np.uint8), np.zeros((4, 16), np.int64))
+            np.empty((H, W), np.uint8), np.zeros(16, np.int64))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -354,9 +349,9 @@ def _upsample_any(H, W, column, conf, mask, gx, gy, nb, stripe_px, no_boundary, 
     # loop, as _upsample_x2 does; the same values bit for bit (head at 1280x1024 shrunk by 1.75: a
     # loop per coarse pixel counting per pixel 4.2 ms; counting per row 3.3; one loop calling
     # _expanded per pixel 2.5-2.7 on an AVX-512 host; on a Zen 3 the upsample stage 3.64 -> 3.50 ms
-    # this way, within the noise).  The mask codes are counted in counts4[0].
+    # this way, within the noise).
     h, w = column.shape
-    col_o, stripe_o, conf_o, mask_o, counts4 = _new_maps(H, W)
+    col_o, stripe_o, conf_o, mask_o, counts = _new_maps(H, W)
     dxs, xbit, jidx = _coarse_columns(w, W, centre_tol)
     E = _expand_scratch(W)
     last = -1
@@ -366,8 +361,8 @@ def _upsample_any(H, W, column, conf, mask, gx, gy, nb, stripe_px, no_boundary, 
             _load_coarse(E, i, mask, nb, column, gx, gy, conf, jidx)
             last = i
         _expand_row(E, xbit, np.uint8(ybit), dxs, dy, stripe_px, no_boundary, edge_code, col_o[v], stripe_o[v],
-                    conf_o[v], mask_o[v], counts4[0])
-    return col_o, stripe_o, conf_o, mask_o, counts4
+                    conf_o[v], mask_o[v], counts)
+    return col_o, stripe_o, conf_o, mask_o, counts
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -496,10 +491,10 @@ def _upsample_x2(column, conf, mask, gx, gy, nb, stripe_px, no_boundary, edge_co
     # (each value twice), then every output row is computed by selects, one array per loop, so the
     # loops vectorise: 4.2-4.9 -> 3.5-3.8 ms at 1280x1024 on AVX2 (with a branchy _expanded per
     # pixel and a per-pixel count; the four outputs' 17 MB of writes now bound it), the same values
-    # bit for bit.  The mask codes are counted in counts4[0].
+    # bit for bit.
     h, w = column.shape
     W = 2 * w
-    col_o, stripe_o, conf_o, mask_o, counts4 = _new_maps(2 * h, W)
+    col_o, stripe_o, conf_o, mask_o, counts = _new_maps(2 * h, W)
     q = 0.25
     dxs = np.empty(W, np.float64)
     xb = np.empty(W, np.uint8)
@@ -515,8 +510,8 @@ def _upsample_x2(column, conf, mask, gx, gy, nb, stripe_px, no_boundary, edge_co
         for a in range(2):
             v = 2 * i + a
             _expand_row(E, xb, np.uint8(4) if a == 1 else np.uint8(8), dxs, q if a == 1 else -q, stripe_px, no_boundary,
-                        edge_code, col_o[v], stripe_o[v], conf_o[v], mask_o[v], counts4[0])
-    return col_o, stripe_o, conf_o, mask_o, counts4
+                        edge_code, col_o[v], stripe_o[v], conf_o[v], mask_o[v], counts)
+    return col_o, stripe_o, conf_o, mask_o, counts
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
