@@ -498,10 +498,10 @@ def test_rim_params_are_validated():
 
 
 
-def _end_row_case(codes, bright, dim_ratio=0.7):
-    """rim_guard with end_rows=1 on a 1-column story told down a (len(codes), 9) frame: every
-    column of the mask gets ``codes`` (reason per row), every pixel of a row the grey ``bright``
-    (encoded G = B); returns the rows masked RIM by the call."""
+def _end_row_case(codes, bright, dim_ratio=0.7, lit_rows=0):
+    """rim_guard with end_rows=1 (and ``lit_rows``) on a 1-column story told down a (len(codes), 9)
+    frame: every column of the mask gets ``codes`` (reason per row), every pixel of a row the grey
+    ``bright`` (encoded G = B); returns the rows masked RIM by the call."""
     from gbscan.decode import rim_guard
 
     H, W = len(codes), 9
@@ -511,7 +511,7 @@ def _end_row_case(codes, bright, dim_ratio=0.7):
     col = np.where(mask == OK, 100.0, np.nan).astype(np.float32)
     before = mask.copy()
     rim_guard(mask, col, np.zeros((H, W), np.int32), np.ones((H, W), np.float32), 0, None, end_rows=1,
-              image_rgb=img, dim_ratio=dim_ratio)
+              image_rgb=img, dim_ratio=dim_ratio, lit_rows=lit_rows)
     assert (mask == mask[:, :1]).all()
     return np.flatnonzero((mask[:, 4] == decode_module.RIM) & (before[:, 4] == OK)).tolist()
 
@@ -562,6 +562,43 @@ def test_end_row_guard_keeps_rows_over_darkness_and_masks_a_penumbra():
     for bad in (-0.1, 1.5, True, "0.7"):
         with pytest.raises(GBError, match="rim_end_dim_ratio"):
             DecodeParams(rim_end_dim_ratio=bad)
+
+
+def test_lit_rows_guard_masks_two_rows_before_a_lit_undecodable_surface():
+    """DecodeParams.rim_lit_rows: reported pixels within 2 rows of a lit pixel the decoder could
+    not use -- low contrast (stripes washed out) or isolated (a dropped striped scrap) -- are
+    masked: at a crease the surface goes on lit with its stripes slanted, and the blur along the
+    stripes makes its first rows look like the reported surface's next ones.  Over darkness the
+    end rows are kept as before (the walk starts at the lit pixel); beyond 2 rows nothing moves."""
+    from gbscan.decode import ISOLATED, LOW_CONTRAST, RIM
+
+    D, L, I, R = DARK, LOW_CONTRAST, ISOLATED, RIM
+    lit, black = 200, 10
+    # a crease: lit without stripes above, longer than the walk (6 rows): rows 8 and 9 masked
+    crease = [L] * 8 + [OK] * 6
+    assert _end_row_case(crease, [lit] * 14) == [8]
+    assert _end_row_case(crease, [lit] * 14, lit_rows=2) == [8, 9]
+    assert _end_row_case(crease, [lit] * 14, lit_rows=3) == [8, 9, 10]
+    # the same upside down
+    assert _end_row_case(crease[::-1], [lit] * 14, lit_rows=2) == [4, 5]
+    # dropped striped pixels between reported rows: two rows each side (the helper's guard rows
+    # of class a are 0, so only this rule sees them)
+    assert _end_row_case([OK] * 3 + [I] * 2 + [OK] * 5, [lit] * 10) == []
+    assert _end_row_case([OK] * 3 + [I] * 2 + [OK] * 5, [lit] * 10, lit_rows=2) == [1, 2, 5, 6]
+    # a surface's top over darkness with a low-contrast first row: both rows below it kept (the
+    # walk from the low-contrast pixel finds the darkness), unless they are dim
+    top = [D, D, L] + [OK] * 7
+    assert _end_row_case(top, [black] * 2 + [lit] * 8, lit_rows=2) == []
+    assert _end_row_case(top, [black] * 2 + [lit] * 2 + [150] + [lit] * 5, lit_rows=2) == [4]
+    # "rim" pixels are not lit ones: the end rule's one row
+    assert _end_row_case([R] * 8 + [OK] * 4, [lit] * 12, lit_rows=2) == [8]
+    for bad in (-1, 1.5, True):
+        with pytest.raises(GBError, match="rim_lit_rows"):
+            DecodeParams(rim_lit_rows=bad)
+    # by default one row more than the end rule: the blur's sigma rounded (at least 1) plus one
+    for sigma, rows in ((1.0, 2), (1.4, 2), (2.6, 4)):
+        assert decode_module.guard_lit_rows(DecodeParams(blur_sigma_along_px=sigma)) == rows
+    assert decode_module.guard_lit_rows(DecodeParams(blur_sigma_along_px=1.0, rim_lit_rows=0)) == 0
 
 
 @pytest.mark.slow
@@ -1368,7 +1405,7 @@ def test_strip_welded_at_a_silhouette_is_cut_by_its_clean_marker_disagreement(fr
     from gbscan.unwrap import UnwrapParams
 
     r = _moving_frame(650.0 + 5.0 * frame, frame, wall_mm=wall_mm)
-    unguarded = dict(SIGMA2, rim_guard_px=0, rim_end_rows=0)
+    unguarded = dict(SIGMA2, rim_guard_px=0, rim_end_rows=0, rim_lit_rows=0)
     sm = decode(r.image, PatternSpec(), DecodeParams(**unguarded))
     sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(conflict_clean_level=0.0), **unguarded))
     assert _wrong_off_edges(decode(r.image, PatternSpec()), r, widen_px) == 0  # the defaults
@@ -1422,7 +1459,7 @@ def test_rows_of_a_linked_region_are_checked_against_its_markers(frame, monkeypa
 
     r = _moving_frame(650.0 + 5.0 * frame, frame)
     assert _wrong_off_edges(decode(r.image, PatternSpec()), r) == 0  # the defaults
-    unguarded = DecodeParams(**dict(SIGMA2, rim_guard_px=0, rim_end_rows=0),
+    unguarded = DecodeParams(**dict(SIGMA2, rim_guard_px=0, rim_end_rows=0, rim_lit_rows=0),
                              unwrap=uw.UnwrapParams(bridge_ratio=0.0, index_margin_events=0.0,
                                                     retry_spacing_ratio=0.0))
     sm = decode(r.image, PatternSpec(), unguarded)
@@ -1759,7 +1796,8 @@ def test_short_fragment_hanging_from_one_lined_up_row_is_not_linked(frame, sigma
     from gbscan.unwrap import UnwrapParams
 
     r = _moving_frame(650.0 + 5.0 * frame, frame)
-    found = {"blur_sigma_along_px": sigma_px, "rim_end_rows": 1, "rim_guard_no_boundary": False, **NO_FAINT}
+    found = {"blur_sigma_along_px": sigma_px, "rim_end_rows": 1, "rim_guard_no_boundary": False, "rim_lit_rows": 0,
+             **NO_FAINT}
     sm = decode(r.image, PatternSpec(), DecodeParams(**found))
     sm0 = decode(r.image, PatternSpec(), DecodeParams(**found, unwrap=UnwrapParams(link_hang_rows=0)))
     assert _wrong_off_edges(decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px)), r) == 0
@@ -2244,7 +2282,8 @@ def test_cool_room_light_read_as_cyan_at_a_terminator_is_dropped():
     projector terminator it raises both channels and reads as a cyan run, then a faint green run;
     the cyan run stopped the peeling like a marker would, and the pixels behind it were reported
     6-7 projector px off, unlit.  A cyan run at a stretch's end in front of a faint run is peeled
-    too: none left."""
+    too: none left.  (The rim guard's lit rows, ``rim_lit_rows``, mask them as well: the peeling
+    is tested without them.)"""
     import dataclasses
 
     from gbscan import sim
@@ -2259,7 +2298,8 @@ def test_cool_room_light_read_as_cyan_at_a_terminator_is_dropped():
         wrong = np.isfinite(sm.column) & ~r.depth_edge & ~(err <= spec.stripe_px / 2)
         return int(wrong.sum()), int((sm.valid & ~r.lit & ~r.depth_edge).sum())
 
-    assert bad(DecodeParams(**NO_FAINT))[0] >= 3
+    assert bad(DecodeParams(**NO_FAINT, rim_lit_rows=0))[0] >= 3
+    assert bad(DecodeParams(rim_lit_rows=0)) == (0, 0)   # the peeling alone
     assert bad(DecodeParams()) == (0, 0)
 
 

@@ -13,18 +13,21 @@ from ._common import ctz64, fill_row
 # -- decoder: rim guard (gbscan.decode.rim_guard) --------------------------------------------------
 @njit(cache=True, nogil=True, error_model="numpy")
 def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows_a, rows_b, ok_code, rim_code,
-                   flags, a3, img, lut, box, dim_ratio, ref_rows, walk_rows, dark_ratio, same_ratio):
+                   flags, a3, img, lut, box, dim_ratio, ref_rows, walk_rows, dark_ratio, same_ratio, c1, c2,
+                   rows_c):
     """Mask ``rim_code`` the ``ok_code`` pixels within ``rows_a`` rows (same column) of a pixel
     whose code is ``a1`` or ``a2`` (or ``a3`` when >= 0), or within ``rows_b`` rows of one whose code is in
     ``[b_lo, b_hi]`` or equals ``b_extra``; sets column NaN, stripe -1, conf 0 there and returns
-    their count (a negative row count disables its class).  The codes are read from the mask as
+    their count (a negative row count disables its class); and within ``rows_c`` rows of one whose
+    code is ``c1`` or ``c2`` (class c: a lit pixel the decoder could not use; its codes may be in
+    class a or b as well, whose reach then also holds).  The codes are read from the mask as
     given (pixels masked here do not extend the guard).  ``flags`` (H, W) uint8 scratch: bit 1
-    class a, bit 2 class b in ``[b_lo, b_hi]``, bit 4 class b ``b_extra``, bit 8 ``ok_code`` (one
-    pass); then per row the OR of the flags of the rows in reach (byte-wide loops that
-    vectorise) decides, and the few hits are written.
+    class a, bit 2 class b in ``[b_lo, b_hi]``, bit 4 class b ``b_extra``, bit 8 ``ok_code``, bit
+    16 class c (one pass); then per row the OR of the flags of the rows in reach (byte-wide loops
+    that vectorise) decides, and the few hits are written.
 
     ``dim_ratio`` > 0 (``img`` (H, W, 3) uint8, ``lut`` (256,) float32 linearisation; else unread):
-    a pixel that only class b pixels put in reach is kept when :func:`_dim_end` finds darkness
+    a pixel that only class b or c pixels put in reach is kept when :func:`_dim_end` finds darkness
     beyond them (``dark_ratio``, within ``walk_rows`` rows; or one signal-less pixel as bright as
     it, ``same_ratio``, then a reported one) and the pixel not dim against the one
     ``ref_rows`` rows the other way (``dim_ratio``; brightness: :func:`_brightness` over ``box``
@@ -34,6 +37,9 @@ def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows
     ua3 = np.uint8(a3) if a3 >= 0 else ua1   # an optional third code of class a (-1: none)
     ulo, uhi, uex = np.uint8(b_lo), np.uint8(b_hi), np.uint8(b_extra)
     uok = np.uint8(ok_code)
+    uc1, uc2 = np.uint8(c1), np.uint8(c2)
+    if rows_c < 0:
+        uc1 = uc2 = np.uint8(255)   # (no code is 255: class c empty)
     one, two, six = np.uint8(1), np.uint8(2), np.uint8(6)
     for v in range(H):
         mrow = mask[v]
@@ -44,8 +50,9 @@ def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows
             fb = np.uint8((m >= ulo) & (m <= uhi))
             fx = np.uint8(m == uex)
             fo = np.uint8(m == uok)
-            frow[u] = fa | (fb << one) | (fx << two) | (fo << np.uint8(3))   # bits 1, 2, 4, 8
-    reach = max(rows_a, rows_b, 0)
+            fc = np.uint8((m == uc1) | (m == uc2))
+            frow[u] = fa | (fb << one) | (fx << two) | (fo << np.uint8(3)) | (fc << np.uint8(4))   # 1, 2, 4, 8, 16
+    reach = max(rows_a, rows_b, rows_c, 0)
     acc = np.empty(W, np.uint8)
     hitrow = np.empty(W, np.uint8)
     dim_test = dim_ratio > 0.0
@@ -56,7 +63,7 @@ def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows
         acc[:] = 0
         for vv in range(max(v - reach, 0), min(v + reach, H - 1) + 1):
             d = abs(vv - v)
-            bits = np.uint8((one if d <= rows_a else 0) | (six if d <= rows_b else 0))
+            bits = np.uint8((one if d <= rows_a else 0) | (six if d <= rows_b else 0) | (16 if d <= rows_c else 0))
             if bits == 0:
                 continue
             frow = flags[vv]
@@ -72,7 +79,7 @@ def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows
             for u in range(W):
                 if hitrow[u] and (acc[u] & one) == 0 and not _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio,
                                                                        ref_rows, walk_rows, dark_ratio,
-                                                                       same_ratio):
+                                                                       same_ratio, rows_c):
                     hitrow[u] = 0
         if any_hit:
             n += _unreport_row(hitrow, mrow, column[v], stripe[v], conf[v], rim_code)
@@ -86,12 +93,14 @@ def _as_bright(x, b, ratio):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio, ref_rows, walk_rows, dark_ratio, same_ratio):
+def _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio, ref_rows, walk_rows, dark_ratio, same_ratio, rows_c):
     # rim_guard_rows' end-row test of pixel (v, u), True: mask it.  B: the phase-blind brightness.
     # On each side s with a class b pixel (flags bits 2 or 4) within rows_b rows, walking on from
     # (v, u) that way past the pixels that are not reported (bit 8; RIM-coded, dropped striped,
-    # signal-less), darkness must come within walk_rows rows, before any reported pixel: two
-    # signal-less pixels (bit 2) in a row below dark_ratio B(v, u), or one at the image's edge
+    # signal-less) -- or, when the nearest is a class c pixel (bit 16, within rows_c rows), from
+    # that pixel on, past the reported rows before it -- darkness must come within walk_rows rows,
+    # before any reported pixel: two signal-less pixels (bit 2) in a row below dark_ratio B(v, u),
+    # or one at the image's edge
     # (nothing there for the blur to carry; a reported pixel first is another surface, or the
     # same after a dropout, which this test cannot tell apart).  And B(v, u) must be at least
     # dim_ratio B at the pixel ref_rows rows the other way (v - s ref_rows), which must be
@@ -103,13 +112,16 @@ def _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio, ref_rows, walk_row
     b = _brightness(img, lut, v, u, box_h)
     dark_b = np.float32(dark_ratio) * b
     for s in (-1, 1):
-        near = False
-        for k in range(1, rows_b + 1):
+        start = 0              # where the walk starts (0: nothing in reach on this side)
+        for k in range(1, max(rows_b, rows_c) + 1):
             w = v + s * k
-            if 0 <= w < H and (flags[w, u] & 6) != 0:
-                near = True
+            want = (6 if k <= rows_b else 0) | (16 if k <= rows_c else 0)
+            if 0 <= w < H and (flags[w, u] & want) != 0:
+                # a class b pixel: from the next row; class c alone: from itself (a lit pixel the
+                # decoder could not use, past reported rows: is darkness beyond it?)
+                start = 1 if (flags[w, u] & want & 6) != 0 else k
                 break
-        if not near:
+        if start == 0:
             continue
         dark = False
         w1, w2 = v + s, v + 2 * s
@@ -117,7 +129,7 @@ def _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio, ref_rows, walk_row
                 and _as_bright(_brightness(img, lut, w1, u, box_h), b, same_ratio)
                 and _as_bright(_brightness(img, lut, w2, u, box_h), b, same_ratio)):
             continue   # one signal-less pixel as bright as its neighbours: a stripe transition
-        for k in range(1, walk_rows + 1):
+        for k in range(start, start + walk_rows):
             w = v + s * k
             if w < 0 or w >= H:
                 dark = True
