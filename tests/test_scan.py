@@ -641,7 +641,8 @@ def test_sim_room_light_crease_rows_are_masked(ambient_rgb):
     which the cleaning keeps (they continue the front face smoothly).  The rim guard's lit rows
     (``DecodeParams.rim_lit_rows``: two rows from a lit pixel the decoder could not use) mask
     them.  Measured (seed 0, worst kept point / points > 3 mm / decoded pixels a stripe off off
-    depth edges): cool 7.71 / 10 / 12 -> 2.49 / 0 / 2, warm 6.14 / 4 / 6 -> 2.62 / 0 / 0."""
+    depth edges): cool 7.71 / 10 / 12 -> 2.49 / 0 / 2, warm 6.14 / 4 / 6 -> 2.62 / 0 / 0; 2.31 and
+    1.91 mm since the frame's sides end row stretches (``rim_end_px``)."""
     import dataclasses
 
     from gbscan import sim

@@ -777,14 +777,15 @@ def _rim_mask_reference(column_rel, region, reg_off, reason, half_px, max_pull_p
                     pull_out[v, u] = dev / den[u]
                 rim = abs(dev) > max_pull_px * den[u]
             if not rim and end_px > 0:
-                # at the end of the row stretch and next to no signal (reason 1..3), both
-                # within end_px; the common case (a column on both sides) exits at once
+                # at the end of the row stretch and next to no signal (reason 1..3) or the
+                # image's side, both within end_px; the common case (a column on both sides)
+                # exits at once
                 if (u >= end_px and u + end_px < W and column_rel[v, u - 1] == column_rel[v, u - 1]
                         and column_rel[v, u + 1] == column_rel[v, u + 1] and end_px == 1):
                     pass
                 else:
                     at_end = u - end_px < 0 or u + end_px >= W
-                    near_dark = False
+                    near_dark = at_end
                     for x in range(max(u - end_px, 0), min(u + end_px, W - 1) + 1):
                         cx = reason[v, x]
                         if x != u and cx >= 1 and cx <= 3:

@@ -816,7 +816,8 @@ def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, 
       ``v - half_px .. v + half_px`` of the finite absolute columns (a box with the variance of the
       decoder's along-stripe Gaussian when ``half_px ~ sqrt(3) sigma``), by running sums.
     * *end*: at most ``end_px`` (0: off) px from the end of the pixel's row stretch of columns
-      and as close to a pixel whose reason is 1..3 (no signal: dark, saturated, low contrast).
+      and as close to a pixel whose reason is 1..3 (no signal: dark, saturated, low contrast) or
+      to the image's left or right side (nothing measured beyond).
     ``pull_out`` (H, W) float32 receives ``M[c] - c`` (pass a (0, 0) array to skip).
     Row-major with per-image-column accumulators; no image-size temporaries.  Per row: the pull
     test branch-free over the row, the end test's window only where the window is not all
@@ -907,7 +908,10 @@ def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, 
                     # at the end of the row stretch and next to no signal (reason 1..3), both
                     # within end_px
                     at_end = u - end_px < 0 or u + end_px >= W
-                    near_dark = False
+                    # the image's side ends a stretch with nothing measured beyond it, as no
+                    # signal does: the windows of stage 3 are cut there (columns 0.3-0.9
+                    # projector px off within 2 px of it)
+                    near_dark = at_end
                     for x in range(max(u - end_px, 0), min(u + end_px, W - 1) + 1):
                         cx = rsn[x]
                         if x != u and cx >= 1 and cx <= 3:
