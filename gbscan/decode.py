@@ -183,17 +183,18 @@ class DecodeParams:
     rim_end_px : pixels at most this far (camera px) from the end of their row's stretch of
         decoded columns, and as close to a dark / saturated / low-contrast pixel or to the image's
         left or right side, are masked "rim" (left/right silhouettes and shadow edges: the local
-        min/max windows mix in the background; the frame's sides cut them; 0: never).  The sides
-        since 2026-11-27 (fifteenth session): a wall at 900 mm filling the frame's left side had
-        its first columns 0.4-0.9 projector px off, the multi-object scan's worst points (2.75 /
-        2.69 / 2.20 -> 1.87 / 2.16 / 1.86 mm, depth RMS 0.193-0.197 -> 0.172-0.176 mm, kept 0.4
+        min/max windows mix in the background; the frame's sides cut them; 0: never).  2 since
+        the blur became automatic: with sigma 1 the pull rule no longer masks the 2nd-3rd pixel
+        next to a slanted shadow edge, whose column was up to 1.1 projector px off (3 mm on the
+        multi-object scene's wall at 900 mm; 1 -> 2: none left, seeds 0-2).  The sides since
+        2026-11-27 (fifteenth session): a wall at 900 mm filling the frame's left side had its
+        first columns 0.4-0.9 projector px off, the multi-object scan's worst points (2.75 / 2.69
+        / 2.20 -> 1.87 / 2.16 / 1.86 mm, depth RMS 0.193-0.197 -> 0.172-0.176 mm, kept 0.4
         points fewer, seeds 0-2) and through a Bayer camera its points over 3 mm (worst 3.40 /
         2.99 / 3.05 -> 2.39 / 2.47 / 2.26 mm); the 48-scene sweep 84.51 -> 84.23 % reported,
         column RMS 0.107 -> 0.104 projector px.  The columns are still 0.2-0.3 px off on average
         over the next 8 px there (the windows' reach; cause not pinned down: moving the min/max
-        windows inside the frame at its sides fixed the normalisation but not the columns).  2 since the blur became automatic: with sigma 1 the pull rule no longer masks
-        the 2nd-3rd pixel next to a slanted shadow edge, whose column was up to 1.1 projector px
-        off (3 mm on the multi-object scene's wall at 900 mm; 1 -> 2: none left, seeds 0-2).
+        windows inside the frame at its sides fixed the normalisation but not the columns).
     rim_guard_px : reported pixels at most this many rows above or below a striped pixel the
         decoder could not index (unindexed, isolated) are masked "rim" (0: never; None, the
         default: the blur's sigma rounded, at least 1 -- :func:`guard_rows`).  At a horizontal

@@ -905,12 +905,11 @@ def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, 
                 m &= m - np.uint64(1)
                 rim = flag[u] != 0
                 if need[u] != 0:
-                    # at the end of the row stretch and next to no signal (reason 1..3), both
-                    # within end_px
+                    # at the end of the row stretch and next to no signal (reason 1..3) or the
+                    # image's side, both within end_px (nothing is measured beyond the side, and
+                    # stage 3's windows are cut there: columns 0.3-0.9 projector px off within
+                    # 2 px of it)
                     at_end = u - end_px < 0 or u + end_px >= W
-                    # the image's side ends a stretch with nothing measured beyond it, as no
-                    # signal does: the windows of stage 3 are cut there (columns 0.3-0.9
-                    # projector px off within 2 px of it)
                     near_dark = at_end
                     for x in range(max(u - end_px, 0), min(u + end_px, W - 1) + 1):
                         cx = rsn[x]
