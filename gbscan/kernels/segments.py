@@ -731,6 +731,85 @@ def fit_junctions(j_x, seg_j0, seg_j1, coef):
 
 
 @njit(cache=True, nogil=True)
+def locking_table(j_x, j_fit, j_la, j_lb, seg_j0, seg_j1, half, nb, min_count, table):
+    """The frame's pixel-locking curve: the sub-pixel locator's mean error by junction type and
+    sub-pixel phase, estimated from the boundary fit's residuals (:func:`fit_junctions`).
+
+    ``j_x`` (n_j,) float64 located positions (camera px, the grid the locator sampled; NaN: not
+    located), ``j_fit`` the same fitted by :func:`fit_junctions` with ``2 half + 1`` boundaries.
+    Only junctions whose whole window lies in their segment count (``seg_j0[s] + half <= j <
+    seg_j1[s] - half``), with a residual ``j_x - j_fit`` non-zero (a window holding an unlocated
+    boundary keeps the located position) and under half a camera pixel.  The residual of junction
+    ``j`` goes to type ``t = 4 j_la[j] + j_lb[j]`` (the colours left | right: green|blue and
+    blue|green differ where the channels' blur or gain differ) and phase bin
+    ``floor(frac(j_x) nb)``; ``table`` (16, nb) float64 receives each bin's mean residual, or 0
+    for every bin of a type with fewer than ``min_count`` residuals in any of its bins.  Returns
+    the number of types filled.
+
+    Why it works: the fit's window spans 2 half + 1 boundaries whose phases differ (a boundary
+    every few pixels), so the fit averages the locking away where the residual keeps it; a frame
+    holds thousands of boundaries, so each bin's mean is the locking at that phase and the fit's
+    own noise and misfit average out.  Where the phases barely change along a row (spacing near
+    a whole number of pixels) the bins stay empty or their residuals near zero: no correction.
+    """
+    ntype = table.shape[0]
+    sums = np.zeros((ntype, nb), np.float64)
+    cnt = np.zeros((ntype, nb), np.int64)
+    for s in range(seg_j0.shape[0]):
+        for j in range(seg_j0[s] + half, seg_j1[s] - half):
+            x = j_x[j]
+            r = x - j_fit[j]
+            if r != 0.0 and abs(r) < 0.5:         # NaN fails both
+                t = 4 * np.int64(j_la[j]) + np.int64(j_lb[j])
+                k = np.int64((x - np.floor(x)) * nb)
+                if k >= nb:
+                    k = nb - 1
+                sums[t, k] += r
+                cnt[t, k] += 1
+    filled = 0
+    for t in range(ntype):
+        ok = True
+        for k in range(nb):
+            if cnt[t, k] < min_count:
+                ok = False
+        for k in range(nb):
+            table[t, k] = sums[t, k] / cnt[t, k] if ok else 0.0
+        if ok:
+            filled += 1
+    return filled
+
+
+@njit(cache=True, nogil=True)
+def apply_locking(j_x, j_la, j_lb, table):
+    """``j_x`` (n_j,) float64 minus the locking curve ``table`` (16, nb) (:func:`locking_table`) at
+    each junction's type and phase, interpolated linearly between the bins' centres
+    (``(k + 1/2) / nb``, periodic).  NaN stays NaN.  Returns a new array.
+
+    Branch-free, one pass: the curve padded with its last bin before the first and its first
+    after the last (the phase is periodic), so the bin below a junction's phase is a truncation
+    and no modulo is needed; an unlocated junction reads bin 0 and stays NaN (plane 0.47 -> 0.1 ms)."""
+    nt = table.shape[0]
+    nb = table.shape[1]
+    ext = np.empty(nt * (nb + 2), np.float64)
+    for t in range(nt):
+        ext[t * (nb + 2)] = table[t, nb - 1]
+        for k in range(nb):
+            ext[t * (nb + 2) + 1 + k] = table[t, k]
+        ext[t * (nb + 2) + nb + 1] = table[t, 0]
+    n = j_x.shape[0]
+    out = np.empty(n, np.float64)
+    for j in range(n):
+        x = j_x[j]
+        xs = x if np.isfinite(x) else 0.0
+        q = (xs - np.floor(xs)) * nb + 0.5        # in [0.5, nb + 0.5): bin i - 1's centre at i + 1/2
+        i = np.int64(q)
+        w = q - i
+        o = (4 * np.int64(j_la[j]) + np.int64(j_lb[j])) * (nb + 2) + i
+        out[j] = x - ((1.0 - w) * ext[o] + w * ext[o + 1])
+    return out
+
+
+@njit(cache=True, nogil=True)
 def _located_cs(j_x, j_bnd, stripe_px, j0, j1, xs, cs):
     # the located boundaries j0 .. j1-1 of a segment in increasing order (a boundary not at least
     # 0.05 px right of the last one kept is dropped) into xs, their columns into cs; returns their count
