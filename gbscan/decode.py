@@ -177,10 +177,10 @@ class DecodeParams:
         ``locking_min_count`` residuals.  ``locking_bins=0``: no correction.  The fit averages
         the locking where the phases in its window differ, but not at a segment's three first and
         last boundaries (kept as located), nor where all boundaries share a phase.  Column RMS of
-        ``scripts/sweep_decode.py`` (off / 8 bins): 48 scenes 0.104 / 0.095 projector px (step
-        0.042 -> 0.025-0.028, tilted planes 0.045-0.053 -> 0.031-0.040, multi-object 0.083-0.091 ->
-        0.072-0.081, faces 1-3 % lower), room light 0.077 / 0.070, clean preset 0.107 / 0.068; no
-        more wrong pixels.  8 and 16 bins measured the same; 16 and 32 likewise.
+        ``scripts/sweep_decode.py`` (off / 8 bins): 48 scenes 0.104 / 0.095 projector px (steps
+        0.042 -> 0.026-0.028, tilted planes 0.045-0.053 -> 0.032-0.040, multi-object 0.077-0.091 ->
+        0.065-0.081, the real face 2-7 % lower), room light 0.077 / 0.070, clean preset 0.107 /
+        0.068; no more wrong pixels.  16 and 32 bins measured the same as 8.
     unwrap : parameters of the unwrapping and absolute indexing.
     rim_bias_px : a pixel whose column the along-stripe blur is estimated to pull by more than this
         (projector px; silhouettes above/below slanted stripes, strongly bent stripes) is masked
@@ -1318,10 +1318,11 @@ STEP_BOX_PX, STEP_HALF_ROWS, STEP_FLAT, STEP_REACH_SIGMAS = 7, 2, 1.3, 3.0
 #: roughness window (rows either side) and scale, the edge term at 1 px along the row and its reach
 #: (px), floor.  The floor was 0.04 until the pixel-locking correction (``DecodeParams.locking_bins``,
 #: 2026-11-27 sixteenth session) took the smooth surfaces' column error down: with 0.04 the sphere's
-#: and the plane's lowest quarter of the prediction then read 0.48 / 0.46x; 0.026 (seeds 0-1,
-#: ``scripts/coverage_study.py --sigma``): sphere 0.70-0.72, head 1.27-1.31, multi-object 0.87-0.90,
-#: plane 0.64-0.65x there (0.02: plane 0.82x but head 1.47x, sphere's middle quarter 1.48x; the real
-#: face's lowest quarter, 1.9x before, reads 2.6x: its error there is not the locator's)
+#: and the plane's lowest quarter of the prediction then read 0.48 / 0.46x.  With 0.026 and the
+#: noise law's excess over it (:func:`spread_floor_px`; seed 0, ``scripts/coverage_study.py
+#: --sigma``): plane 0.65x, sphere 0.64x (its SNR 32: floor 0.032), head 1.02x, multi-object 0.74x,
+#: the real face 2.1x (1.9x before: its error there is not the locator's).  A floor of 0.02 for
+#: every frame: plane 0.82x but head 1.47x and the sphere's middle quarter 1.48x (history.md)
 SPREAD_ROUGH_ROWS, SPREAD_ROUGH_SCALE, SPREAD_EDGE_PX, SPREAD_EDGE_CAP, SPREAD_FLOOR_PX = 2, 1.5, 0.2, 6, 0.026
 #: the edge term at 1 row along the column (within the same reach).  Smaller than along the row:
 #: the roughness, a mean over the second differences the window has, already measures how fast

@@ -801,7 +801,7 @@ def apply_locking(j_x, j_la, j_lb, table):
     for j in range(n):
         x = j_x[j]
         xs = x if np.isfinite(x) else 0.0
-        q = (xs - np.floor(xs)) * nb + 0.5        # in [0.5, nb + 0.5): bin i - 1's centre at i + 1/2
+        q = (xs - np.floor(xs)) * nb + 0.5        # in [0.5, nb + 0.5); ext[i] holds bin i - 1, centred at q = i
         i = np.int64(q)
         w = q - i
         o = (4 * np.int64(j_la[j]) + np.int64(j_lb[j])) * (nb + 2) + i
