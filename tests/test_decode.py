@@ -598,8 +598,8 @@ def test_end_row_guard_keeps_rows_over_darkness_and_masks_a_penumbra():
 
 def test_lit_rows_guard_masks_two_rows_before_a_lit_undecodable_surface():
     """DecodeParams.rim_lit_rows: reported pixels within 2 rows of a lit pixel the decoder could
-    not use -- low contrast (stripes washed out) or isolated (a dropped striped scrap) -- are
-    masked: at a crease the surface goes on lit with its stripes slanted, and the blur along the
+    not use -- low contrast (stripes washed out), isolated (a dropped striped scrap) or dark
+    without darkness beyond (no modulation) -- are masked: at a crease the surface goes on lit with its stripes slanted, and the blur along the
     stripes makes its first rows look like the reported surface's next ones.  Over darkness the
     end rows are kept as before (the walk starts at the lit pixel); beyond 2 rows nothing moves."""
     from gbscan.decode import ISOLATED, LOW_CONTRAST, RIM
@@ -624,6 +624,18 @@ def test_lit_rows_guard_masks_two_rows_before_a_lit_undecodable_surface():
     assert _end_row_case(top, [black] * 2 + [lit] * 2 + [150] + [lit] * 5, lit_rows=2) == [4]
     # "rim" pixels are not lit ones: the end rule's one row
     assert _end_row_case([R] * 8 + [OK] * 4, [lit] * 12, lit_rows=2) == [8]
+    # a lit pixel the classifier called dark (no modulation) is one too: the crease of a top face
+    # without stripes (the cool room light's last two wrong pixels); over darkness nothing moves
+    assert _end_row_case([D] * 8 + [OK] * 6, [lit] * 14) == [8]
+    assert _end_row_case([D] * 8 + [OK] * 6, [lit] * 14, lit_rows=2) == [8, 9]
+    assert _end_row_case([D, D] + [OK] * 8, [black] * 2 + [lit] * 8, lit_rows=2) == []
+    # one signal-less row as bright as the reported rows either side is a stripe transition inside
+    # the surface (the end rule's exception), at the lit rows' reach too; two such rows, or a dark
+    # sliver, are not
+    assert _end_row_case([OK, OK, OK, D, OK, OK, OK], [lit] * 7, lit_rows=2) == []
+    assert _end_row_case([OK, OK, OK, L, OK, OK, OK], [lit] * 7, lit_rows=2) == []
+    assert _end_row_case([OK, OK, OK, D, D, OK, OK, OK], [lit] * 8, lit_rows=2) == [1, 2, 5, 6]
+    assert _end_row_case([OK, OK, OK, D, OK, OK, OK], [lit] * 3 + [black] + [lit] * 3, lit_rows=2) == [1, 2, 4, 5]
     for bad in (-1, 1.5, True):
         with pytest.raises(GBError, match="rim_lit_rows"):
             DecodeParams(rim_lit_rows=bad)
@@ -642,7 +654,7 @@ def test_end_rows_over_darkness_are_kept_and_the_penumbra_is_not():
     ``column_sigma`` predicts it within 1.5x: 0.90-1.18x); a plane at 900 mm, past the
     projector's image at the top and the bottom, has no pixel reported more than 2.5 projector
     rows outside the image (the penumbra the optics' defocus lights, its columns up to 1 px off:
-    4.2 rows with the end rows unguarded)."""
+    4.2 rows with the end rows and the lit rows unguarded)."""
     r = render("sphere")
     T = r.proj_xy[..., 0]
     good = r.lit & ~r.depth_edge
@@ -661,7 +673,8 @@ def test_end_rows_over_darkness_are_kept_and_the_penumbra_is_not():
     rp = sim.render(sim.paper_rig(), sim.scenes.plane(900.0), render_pattern(PatternSpec()), sim.preset("typical"),
                     seed=0)
     rows = rp.proj_xy[..., 1]
-    for params, ok in ((DecodeParams(), True), (DecodeParams(rim_end_rows=0), False)):
+    # (the lit rows guard, which reaches the penumbra's dark pixels too, off with the end rows)
+    for params, ok in ((DecodeParams(), True), (DecodeParams(rim_end_rows=0, rim_lit_rows=0), False)):
         spm = decode(rp.image, PatternSpec(), params)
         y = rows[spm.valid & np.isfinite(rows)]
         inside = y.min() > -2.5 and y.max() < 767 + 2.5

@@ -642,7 +642,9 @@ def test_sim_room_light_crease_rows_are_masked(ambient_rgb):
     (``DecodeParams.rim_lit_rows``: two rows from a lit pixel the decoder could not use) mask
     them.  Measured (seed 0, worst kept point / points > 3 mm / decoded pixels a stripe off off
     depth edges): cool 7.71 / 10 / 12 -> 2.49 / 0 / 2, warm 6.14 / 4 / 6 -> 2.62 / 0 / 0; 2.31 and
-    1.91 mm since the frame's sides end row stretches (``rim_end_px``)."""
+    1.91 mm since the frame's sides end row stretches (``rim_end_px``).  The cool frame's last 2
+    sat beside a top-face pixel the classifier called dark: 0 since a lit dark pixel is in the
+    rule's class too (2026-11-27, sixteenth session)."""
     import dataclasses
 
     from gbscan import sim
@@ -662,7 +664,7 @@ def test_sim_room_light_crease_rows_are_masked(ambient_rgb):
     print(f"room light {ambient_rgb}: (worst mm, > 3 mm, a stripe off) without the lit rows {out[0]}, "
           f"with {out[None]}")
     assert out[0][1] >= 3 and out[0][2] >= 5          # the crease rows, without the rule
-    assert out[None][1] == 0 and out[None][2] <= 2
+    assert out[None][1] == 0 and out[None][2] == 0
 
 
 @pytest.mark.slow

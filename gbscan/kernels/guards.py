@@ -14,12 +14,12 @@ from ._common import ctz64, fill_row
 @njit(cache=True, nogil=True, error_model="numpy")
 def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows_a, rows_b, ok_code, rim_code,
                    flags, a3, img, lut, box, dim_ratio, ref_rows, walk_rows, dark_ratio, same_ratio, c1, c2,
-                   rows_c):
+                   rows_c, c3=-1):
     """Mask ``rim_code`` the ``ok_code`` pixels within ``rows_a`` rows (same column) of a pixel
     whose code is ``a1`` or ``a2`` (or ``a3`` when >= 0), or within ``rows_b`` rows of one whose code is in
     ``[b_lo, b_hi]`` or equals ``b_extra``; sets column NaN, stripe -1, conf 0 there and returns
     their count (a negative row count disables its class); and within ``rows_c`` rows of one whose
-    code is ``c1`` or ``c2`` (class c: a lit pixel the decoder could not use; its codes may be in
+    code is ``c1``, ``c2`` or ``c3`` (when >= 0) (class c: a lit pixel the decoder could not use; its codes may be in
     class a or b as well, whose reach then also holds).  The codes are read from the mask as
     given (pixels masked here do not extend the guard).  ``flags`` (H, W) uint8 scratch: bit 1
     class a, bit 2 class b in ``[b_lo, b_hi]``, bit 4 class b ``b_extra``, bit 8 ``ok_code``, bit
@@ -38,8 +38,9 @@ def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows
     ulo, uhi, uex = np.uint8(b_lo), np.uint8(b_hi), np.uint8(b_extra)
     uok = np.uint8(ok_code)
     uc1, uc2 = np.uint8(c1), np.uint8(c2)
+    uc3 = np.uint8(c3) if c3 >= 0 else uc1   # an optional third code of class c (-1: none)
     if rows_c < 0:
-        uc1 = uc2 = np.uint8(255)   # (no code is 255: class c empty)
+        uc1 = uc2 = uc3 = np.uint8(255)   # (no code is 255: class c empty)
     one, two, six = np.uint8(1), np.uint8(2), np.uint8(6)
     for v in range(H):
         mrow = mask[v]
@@ -50,7 +51,7 @@ def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows
             fb = np.uint8((m >= ulo) & (m <= uhi))
             fx = np.uint8(m == uex)
             fo = np.uint8(m == uok)
-            fc = np.uint8((m == uc1) | (m == uc2))
+            fc = np.uint8((m == uc1) | (m == uc2) | (m == uc3))
             frow[u] = fa | (fb << one) | (fx << two) | (fo << np.uint8(3)) | (fc << np.uint8(4))   # 1, 2, 4, 8, 16
     reach = max(rows_a, rows_b, rows_c, 0)
     acc = np.empty(W, np.uint8)
@@ -98,7 +99,8 @@ def _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio, ref_rows, walk_row
     # On each side s with a class b pixel (flags bits 2 or 4) within rows_b rows, walking on from
     # (v, u) that way past the pixels that are not reported (bit 8; RIM-coded, dropped striped,
     # signal-less) -- or, when the nearest is a class c pixel (bit 16, within rows_c rows), from
-    # that pixel on, past the reported rows before it -- darkness must come within walk_rows rows,
+    # that pixel on, past the reported rows before it (a class c DARK pixel over darkness is thus
+    # no trigger) -- darkness must come within walk_rows rows,
     # before any reported pixel: two signal-less pixels (bit 2) in a row below dark_ratio B(v, u),
     # or one at the image's edge
     # (nothing there for the blur to carry; a reported pixel first is another surface, or the
@@ -107,7 +109,8 @@ def _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio, ref_rows, walk_row
     # reported (else masked: no surface to compare with): not a penumbra.  A side whose next
     # pixel is signal-less (not "rim") and the one after reported, both within same_ratio of
     # B(v, u) either way, is clear: a stripe transition the classifier found neither green nor
-    # blue enough, inside the surface (the real face's green-blue boundary pixels).
+    # blue enough, inside the surface (the real face's green-blue boundary pixels); for a class c
+    # pixel alone in reach the same test at it and the pixel beyond.
     H = flags.shape[0]
     b = _brightness(img, lut, v, u, box_h)
     dark_b = np.float32(dark_ratio) * b
@@ -124,7 +127,8 @@ def _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio, ref_rows, walk_row
         if start == 0:
             continue
         dark = False
-        w1, w2 = v + s, v + 2 * s
+        # (a class c pixel alone in reach: the same test at it and the pixel beyond)
+        w1, w2 = v + s * start, v + s * (start + 1)
         if (0 <= w2 < H and (flags[w1, u] & 6) == 2 and (flags[w2, u] & 8) != 0
                 and _as_bright(_brightness(img, lut, w1, u, box_h), b, same_ratio)
                 and _as_bright(_brightness(img, lut, w2, u, box_h), b, same_ratio)):
