@@ -297,32 +297,32 @@ class DecodeParams:
         more, but let 1-3 mixed silhouette pixels of the hard multi-object scene through.
     rim_lit_rows : reported pixels at most this many rows above or below a *lit* pixel the decoder
         could not use -- low contrast (lit, its stripes washed out), isolated (a dropped striped
-        scrap) or dark (no modulation; not followed by darkness) -- are masked "rim", with the dim test of ``rim_end_dim_ratio`` walking on from that
-        pixel (0: the rule off, those pixels then reach as far as ``rim_end_rows`` and
-        ``rim_guard_px`` say; None, the default: one row more than the blur's sigma rounded, at
-        least 1 -- :func:`guard_lit_rows`).  At a crease the surface goes on, lit, with its stripes
-        slanted: a box's top face seen edge-on above its front runs 6 projector px a row, so the
-        blur along the stripes washes its stripes out, and its first one or two rows borrow the
-        front face's stripes through the blur: decoded as the front's next rows, 4-7 projector px
-        off, smooth with the front face, so the cleaning keeps them.  Measured: under room light
-        the multi-object scan's worst point (3x3 supersampled, seed 0) cool 0.25 7.71 -> 2.49 mm
-        (10 -> 0 points over 3 mm), warm 0.15 6.14 -> 2.62 mm (4 -> 0); the sweep's room-light
-        frames 92.72 -> 92.56 % reported, wrong pixels off depth edges 18 -> 2, on them 135 ->
-        32; the 48 scenes 84.69 -> 84.51 %, 13 -> 7 and 159 -> 106; clean preset 90.48 -> 90.40
-        %, 0 -> 0, 58 -> 39; kept by the scans (``scripts/coverage_study.py``, seeds 0-2) sphere
-        92.2-92.7 -> 92.0-92.6 %, head 85.1-87.1 -> 84.9-86.9 %, real face 81.6-82.8 -> 81.4-82.5
-        %, worst points and depth RMS the same or lower.  Twice the sigma instead of one row more
-        (the same at the automatic 1 px blur): at fixed blurs 2 / 3 px the sweep's wrong pixels
-        off depth edges 8 / 6 -> 6 / 2, for 0.3-0.5 points of coverage and 0.2-1.5 points on the
-        hard preset's frames, which had none wrong.  Since 2026-11-27 (sixteenth session) a pixel
-        the classifier called dark is such a lit pixel too, when no darkness follows it (the dim
-        test's walk from it), and a single signal-less row as bright as the reported rows on
-        either side is a stripe transition at this reach as at the end rule's: the cool room
-        light's last two wrong pixels sat beside a box's top-face pixel called dark.  Measured:
-        room light 2 -> 0 wrong off depth edges, 31 -> 19 on them, 92.26 -> 92.19 % reported; 48
-        scenes 7 -> 7 (Bayer), 107 -> 90, 84.24 -> 84.03 %; clean 0, 36 -> 31, 90.05 -> 90.04 %;
-        scans kept (seeds 0-2) sphere 0 to -0.1 points, head -0.1 to -0.2, real face -0.2 to -0.3,
-        multi-object -0.3 to -0.4, depth RMS and worst points unchanged.
+        scrap) or dark (no modulation; not followed by darkness) -- are masked "rim", with the dim
+        test of ``rim_end_dim_ratio`` walking on from that pixel (0: the rule off, those pixels
+        then reach as far as ``rim_end_rows`` and ``rim_guard_px`` say; None, the default: one
+        row more than the blur's sigma rounded, at least 1 -- :func:`guard_lit_rows`).  At a crease
+        the surface goes on, lit, with its stripes slanted: a box's top face seen edge-on above its
+        front runs 6 projector px a row, so the blur along the stripes washes its stripes out, and
+        its first one or two rows borrow the front face's stripes through the blur: decoded as the
+        front's next rows, 4-7 projector px off, smooth with the front face, so the cleaning keeps
+        them.  Measured: under room light the multi-object scan's worst point (3x3 supersampled,
+        seed 0) cool 0.25 7.71 -> 2.49 mm (10 -> 0 points over 3 mm), warm 0.15 6.14 -> 2.62 mm (4
+        -> 0); the sweep's room-light frames 92.72 -> 92.56 % reported, wrong pixels off depth edges
+        18 -> 2, on them 135 -> 32; the 48 scenes 84.69 -> 84.51 %, 13 -> 7 and 159 -> 106; clean
+        preset 90.48 -> 90.40 %, 0 -> 0, 58 -> 39; kept by the scans (``scripts/coverage_study.py``,
+        seeds 0-2) sphere 92.2-92.7 -> 92.0-92.6 %, head 85.1-87.1 -> 84.9-86.9 %, real face
+        81.6-82.8 -> 81.4-82.5 %, worst points and depth RMS the same or lower.  Twice the sigma
+        instead of one row more (the same at the automatic 1 px blur): at fixed blurs 2 / 3 px the
+        sweep's wrong pixels off depth edges 8 / 6 -> 6 / 2, for 0.3-0.5 points of coverage and
+        0.2-1.5 points on the hard preset's frames, which had none wrong.  Since 2026-11-27
+        (sixteenth session) a pixel the classifier called dark is such a lit pixel too, when no
+        darkness follows it (the dim test's walk from it), and a single signal-less row as bright as
+        the reported rows on either side is a stripe transition at this reach as at the end rule's:
+        the cool room light's last two wrong pixels sat beside a box's top-face pixel called dark.
+        Measured: room light 2 -> 0 wrong off depth edges, 31 -> 19 on them, 92.26 -> 92.19 %
+        reported; 48 scenes 7 -> 7 (Bayer), 107 -> 90, 84.24 -> 84.03 %; clean 0, 36 -> 31, 90.05 ->
+        90.04 %; scans kept (seeds 0-2) sphere 0 to -0.1 points, head -0.1 to -0.2, real face -0.2
+        to -0.3, multi-object -0.3 to -0.4, depth RMS and worst points unchanged.
     step_guard_ratio : reported pixels on the dim side of a brightness step inside their region's
         stretch along the stripes, within 3 sigma of the stretch's end, are masked "rim" when the
         bright side is more than this many times brighter (0: never).  See :func:`step_guard`.
@@ -1229,8 +1229,8 @@ def guard_end_rows(params: DecodeParams) -> int:
 
 def guard_lit_rows(params: DecodeParams) -> int:
     """The rows :func:`rim_guard` masks above and below a lit pixel the decoder could not use
-    (``LOW_CONTRAST``, ``ISOLATED``, ``DARK`` without darkness beyond): ``rim_lit_rows``, or when it is None the along-stripe blur's
-    sigma rounded (at least 1) plus one."""
+    (``LOW_CONTRAST``, ``ISOLATED``, ``DARK`` without darkness beyond): ``rim_lit_rows``, or when
+    it is None the along-stripe blur's sigma rounded (at least 1) plus one."""
     if params.rim_lit_rows is not None:
         return int(params.rim_lit_rows)
     return _rows_or_sigma(None, params) + 1
@@ -1268,9 +1268,8 @@ def rim_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confiden
     kept when, on each side where one is, darkness follows before any reported pixel -- walking
     from the lit pixel itself when only ``lit_rows`` reaches it -- (two signal-less rows below
     ``DIM_DARK_RATIO`` of its brightness within ``DIM_WALK_ROWS`` rows, past "rim" and dropped
-    ones) and it is not dim: its
-    phase-blind brightness at least ``dim_ratio`` times that of the reported pixel
-    ``DIM_REF_ROWS`` rows further in.  A penumbra, lit by the optics' defocus alone, is dim and
+    ones) and it is not dim: its phase-blind brightness at least ``dim_ratio`` times that of the
+    reported pixel ``DIM_REF_ROWS`` rows further in.  A penumbra, lit by the optics' defocus alone, is dim and
     its columns are off (see ``DecodeParams.rim_end_dim_ratio``).
     """
     rows, end_rows, lit_rows = int(rows), int(end_rows), int(lit_rows)

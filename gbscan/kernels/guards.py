@@ -14,13 +14,13 @@ from ._common import ctz64, fill_row
 @njit(cache=True, nogil=True, error_model="numpy")
 def rim_guard_rows(mask, column, stripe, conf, a1, a2, b_lo, b_hi, b_extra, rows_a, rows_b, ok_code, rim_code,
                    flags, a3, img, lut, box, dim_ratio, ref_rows, walk_rows, dark_ratio, same_ratio, c1, c2,
-                   rows_c, c3=-1):
+                   rows_c, c3):
     """Mask ``rim_code`` the ``ok_code`` pixels within ``rows_a`` rows (same column) of a pixel
     whose code is ``a1`` or ``a2`` (or ``a3`` when >= 0), or within ``rows_b`` rows of one whose code is in
     ``[b_lo, b_hi]`` or equals ``b_extra``; sets column NaN, stripe -1, conf 0 there and returns
     their count (a negative row count disables its class); and within ``rows_c`` rows of one whose
-    code is ``c1``, ``c2`` or ``c3`` (when >= 0) (class c: a lit pixel the decoder could not use; its codes may be in
-    class a or b as well, whose reach then also holds).  The codes are read from the mask as
+    code is ``c1``, ``c2`` or ``c3`` (when >= 0) (class c: a lit pixel the decoder could not use;
+    its codes may be in class a or b as well, whose reach then also holds).  The codes are read from the mask as
     given (pixels masked here do not extend the guard).  ``flags`` (H, W) uint8 scratch: bit 1
     class a, bit 2 class b in ``[b_lo, b_hi]``, bit 4 class b ``b_extra``, bit 8 ``ok_code``, bit
     16 class c (one pass); then per row the OR of the flags of the rows in reach (byte-wide loops
@@ -100,9 +100,8 @@ def _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio, ref_rows, walk_row
     # (v, u) that way past the pixels that are not reported (bit 8; RIM-coded, dropped striped,
     # signal-less) -- or, when the nearest is a class c pixel (bit 16, within rows_c rows), from
     # that pixel on, past the reported rows before it (a class c DARK pixel over darkness is thus
-    # no trigger) -- darkness must come within walk_rows rows,
-    # before any reported pixel: two signal-less pixels (bit 2) in a row below dark_ratio B(v, u),
-    # or one at the image's edge
+    # no trigger) -- darkness must come within walk_rows rows, before any reported pixel: two
+    # signal-less pixels (bit 2) in a row below dark_ratio B(v, u), or one at the image's edge
     # (nothing there for the blur to carry; a reported pixel first is another surface, or the
     # same after a dropout, which this test cannot tell apart).  And B(v, u) must be at least
     # dim_ratio B at the pixel ref_rows rows the other way (v - s ref_rows), which must be
@@ -127,7 +126,6 @@ def _dim_end(img, lut, box_h, flags, v, u, rows_b, dim_ratio, ref_rows, walk_row
         if start == 0:
             continue
         dark = False
-        # (a class c pixel alone in reach: the same test at it and the pixel beyond)
         w1, w2 = v + s * start, v + s * (start + 1)
         if (0 <= w2 < H and (flags[w1, u] & 6) == 2 and (flags[w2, u] & 8) != 0
                 and _as_bright(_brightness(img, lut, w1, u, box_h), b, same_ratio)
