@@ -214,6 +214,41 @@ def available_stages(package: str, stages: list[str]) -> list[str]:
     return [s for s in stages if importlib.util.find_spec(f"{package}.commands.{s.replace('-', '_')}") is not None]
 
 
+class _SkipNumbaBlasProbe:
+    """A finder on ``sys.meta_path`` that fails one import: ``scipy.linalg`` asked for while numba's
+    ``numba.np.arraymath`` runs its module body (before it sets ``_HAVE_BLAS``).  Every other
+    import, and ``scipy.linalg`` at any other moment, goes to the usual finders."""
+
+    @staticmethod
+    def find_spec(name, path=None, target=None):
+        if name != "scipy.linalg":
+            return None
+        m = sys.modules.get("numba.np.arraymath")
+        if m is None or hasattr(m, "_HAVE_BLAS"):
+            return None
+        raise ModuleNotFoundError("numba's BLAS probe skipped (gbscan.cli_common.skip_numba_blas_probe)",
+                                  name=name)
+
+
+def skip_numba_blas_probe() -> None:
+    """Let numba start without importing SciPy's linear algebra (console scripts only).
+
+    When numba first loads a kernel it imports ``numba.np.arraymath``, whose module body probes
+    for a BLAS by importing ``scipy.linalg.cython_blas``.  That imports all of ``scipy.linalg``
+    and, through its ``array_api_compat``, every numpy submodule (``numpy.f2py`` among them):
+    0.2-0.3 s of a ``gbscan scan`` command on this project's hosts, for a BLAS that no gbscan
+    kernel calls (none uses ``np.dot``, ``np.vdot``, ``np.inner``, ``@`` or ``np.linalg``;
+    ``tests/test_cli_core.py`` checks their source).  This puts :class:`_SkipNumbaBlasProbe`
+    first on ``sys.meta_path``, so the probe's import fails fast and numba answers "no BLAS":
+    its 1-D ``np.dot`` then uses its own loop, and its 2-D ``np.dot`` and ``np.linalg`` check
+    for the BLAS again when they are compiled.  ``scipy.linalg`` imported at any other moment
+    (before numba starts, or after: ``gbcal``'s optimiser, the Poisson mesher's ``scipy.sparse``)
+    loads as usual.  Only the console scripts call it: a library user's process keeps numba's
+    defaults."""
+    if not any(isinstance(f, _SkipNumbaBlasProbe) for f in sys.meta_path):
+        sys.meta_path.insert(0, _SkipNumbaBlasProbe())
+
+
 def exit_now(main) -> None:
     """Console-script entry: run ``main()`` and exit as soon as its output is flushed and the
     ``atexit`` handlers have run, skipping the interpreter's teardown of the loaded native
@@ -223,6 +258,7 @@ def exit_now(main) -> None:
     import atexit
     import os
 
+    skip_numba_blas_probe()
     try:
         rc = main()
     except SystemExit as e:  # argparse --help / usage errors

@@ -59,3 +59,85 @@ def test_errors_are_one_line(tmp_path):
         assert r.returncode != 0
         assert "Traceback" not in r.stderr
         assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+# -- the console scripts' start-up: numba's BLAS probe skipped ---------------------------------------
+_BLAS_CALLS = {"dot", "vdot", "inner", "matmul", "linalg"}
+
+
+def _blas_uses(source: str, name: str) -> list[str]:
+    """Where the numba-compiled functions of ``source`` call something numba backs with a BLAS
+    (``np.dot``, ``np.vdot``, ``np.inner``, ``np.matmul``, ``np.linalg``, ``@``): "file:line what"."""
+    import ast
+
+    found = []
+    for fn in ast.walk(ast.parse(source)):
+        if not isinstance(fn, ast.FunctionDef):
+            continue
+        if not any("jit" in ast.unparse(d) for d in fn.decorator_list):
+            continue
+        for node in ast.walk(fn):
+            if isinstance(node, (ast.BinOp, ast.AugAssign)) and isinstance(node.op, ast.MatMult):
+                found.append(f"{name}:{node.lineno} @")
+            elif isinstance(node, ast.Attribute) and node.attr in _BLAS_CALLS:
+                found.append(f"{name}:{node.lineno} .{node.attr}")
+    return found
+
+
+def test_no_numba_kernel_needs_a_blas():
+    """The console scripts tell numba there is no BLAS (gbscan.cli_common.skip_numba_blas_probe):
+    that is only free while no kernel of the project calls one."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    files = sorted([*root.joinpath("gbscan").rglob("*.py"), *root.joinpath("gbcal").rglob("*.py")])
+    n_kernels = sum(f.read_text().count("@njit") for f in files)
+    assert n_kernels > 200  # the scan looks where the kernels are
+    uses = [u for f in files for u in _blas_uses(f.read_text(), str(f.relative_to(root)))]
+    assert uses == [], f"numba kernels calling a BLAS (drop skip_numba_blas_probe, or these): {uses}"
+    # the check itself finds each kind of call, in a kernel only
+    planted = ("from numba import njit\nimport numpy as np\n"
+               "@njit(cache=True)\ndef k(a, b):\n    c = a @ b\n    return np.dot(a, b) + np.linalg.norm(c)\n"
+               "def plain(a):\n    return a @ a\n")
+    assert _blas_uses(planted, "x") == ["x:5 @", "x:6 .dot", "x:6 .linalg"]
+
+
+_PROBE = """
+import sys
+import numpy as np
+from numba import njit
+if sys.argv[1] == "skip":
+    from gbscan.cli_common import skip_numba_blas_probe
+    skip_numba_blas_probe()
+    skip_numba_blas_probe()  # twice: one finder
+    from gbscan.cli_common import _SkipNumbaBlasProbe
+    assert sum(isinstance(f, _SkipNumbaBlasProbe) for f in sys.meta_path) == 1
+
+@njit
+def dot2(a, b):
+    return np.dot(a, b)
+
+@njit
+def add(a):
+    return a + 1
+
+add(1)  # numba's first kernel: it imports numba.np.arraymath, which probes for a BLAS
+import numba.np.arraymath
+before = "scipy.linalg" in sys.modules
+import scipy.linalg  # loads as usual afterwards
+x = np.arange(9.0).reshape(3, 3)
+print(numba.np.arraymath._HAVE_BLAS, before, np.allclose(dot2(x, x), x @ x), scipy.linalg.cython_blas is not None)
+"""
+
+
+def test_console_scripts_skip_numbas_blas_probe():
+    """With the probe skipped numba starts without importing scipy.linalg, and scipy.linalg and
+    numba's BLAS-backed np.dot still work afterwards; without it (a library process) numba probes
+    as it always did.  If a numba release stops probing, the second half fails: the skip can go."""
+    out = {}
+    for mode in ("skip", "probe"):
+        r = subprocess.run([sys.executable, "-c", _PROBE, mode], capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        out[mode] = r.stdout.split()
+    assert out["skip"] == ["False", "False", "True", "True"]
+    assert out["probe"] == ["True", "True", "True", "True"]

@@ -406,7 +406,7 @@ def test_sim_curved_accuracy_full_target(name):
 
 @pytest.mark.slow
 def test_sim_scan_command_end_to_end(tmp_path):
-    r, _ = sim_scan("head")
+    r, in_process = sim_scan("head")
     from gbscan import sim
 
     img = write_png(tmp_path / "head.png", r.image)
@@ -419,6 +419,8 @@ def test_sim_scan_command_end_to_end(tmp_path):
     ok = np.isfinite(xyz[..., 2])
     assert ok.sum() > 0.8 * r.lit.sum()
     assert np.nanmedian(np.abs(xyz[..., 2] - r.point[..., 2])[ok]) < 0.3
+    # the command (numba told there is no BLAS: skip_numba_blas_probe) gives the API's points bit for bit
+    np.testing.assert_array_equal(xyz, in_process.xyz)
     assert (tmp_path / "mesh.stl").stat().st_size > 84
     cloud = read_cloud_ply(tmp_path / "cloud.ply")
     assert len(cloud.points) == ok.sum()
