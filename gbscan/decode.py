@@ -168,7 +168,20 @@ class DecodeParams:
         Column RMS error of reported non-edge pixels (``scripts/sweep_decode.py`` scenes,
         h = 0 / 3): tilted plane 0.085 / 0.053, step 0.074 / 0.042, multi-object 0.131 / 0.096,
         sphere 0.121 / 0.085, head 0.158 / 0.138, hard plane 0.239 / 0.172, hard sphere
-        0.244 / 0.195 projector px; h = 4 and 5 are better on planes only, 2 is worse everywhere.
+        0.244 / 0.195 projector px; h = 4 and 5 are better on planes only, 2 is worse on these
+        scenes (but see ``boundary_fit_alt_half``).
+    boundary_fit_alt_half : a second, narrower half window that each indexed region takes
+        instead of ``boundary_fit_half`` when it predicts the region's own boundaries better
+        (leave-one-out cross-validation, :func:`choose_fit`; 0: every region takes
+        ``boundary_fit_half``).  The quadratic over 7 boundaries (~26 camera px) smooths the
+        locator's noise, but where the relief changes within it (a real face: cheeks, lips, the
+        eyes' surroundings) its bias is the larger error: on the real face (``fran_face``,
+        noise-free render) the lowest quarter of the predicted column error was 0.127 projector
+        px off with the 7-boundary fit, 0.083 with 5, of which noise 0.024.  The test on the
+        region's boundaries sees which of the two dominates: the real face's regions take 5
+        boundaries (depth RMS 0.216-0.219 -> 0.18-0.19 mm, seeds 0-2), the plane, the sphere, the
+        synthetic head (smooth relief) and the multi-object scene keep 7 (a fixed 5 would raise
+        their depth RMS by 55 / 6 / 30 % on the plane / sphere / multi-object scene).
     locking_bins, locking_min_count : the sub-pixel locator's *pixel locking* is taken out of every
         located boundary before the fit (:func:`correct_locking`): its mean error as a function of
         the boundary's sub-pixel phase (``locking_bins`` bins per camera pixel) and of its colours
@@ -413,6 +426,7 @@ class DecodeParams:
     contact_gap_px: int = 2
     extrapolate_fit: int = 5
     boundary_fit_half: int = 3
+    boundary_fit_alt_half: int = 2
     locking_bins: int = 8
     locking_min_count: int = 40
     unwrap: UnwrapParams = field(default_factory=UnwrapParams)
@@ -469,6 +483,10 @@ class DecodeParams:
         bf = self.boundary_fit_half
         if isinstance(bf, bool) or not float(bf).is_integer() or not 0 <= int(bf) <= 10:
             bad("boundary_fit_half", f"must be a whole number of boundaries in [0, 10] (0: no fit), got {bf!r}")
+        ba = self.boundary_fit_alt_half
+        if isinstance(ba, bool) or not float(ba).is_integer() or not (int(ba) == 0 or 2 <= int(ba) <= 10):
+            bad("boundary_fit_alt_half", f"must be 0 (every region takes boundary_fit_half) or a whole number "
+                                         f"of boundaries in [2, 10], got {ba!r}")
         lb_ = self.locking_bins
         if isinstance(lb_, bool) or not float(lb_).is_integer() or not 0 <= int(lb_) <= 64:
             bad("locking_bins", f"must be a whole number of phase bins in [0, 64] (0: no correction), got {lb_!r}")
@@ -1137,6 +1155,59 @@ def fit_boundaries(j_x: np.ndarray, segs, half: int) -> np.ndarray:
         return j_x
     return kernels.fit_junctions(np.ascontiguousarray(j_x, dtype=np.float64), segs.j0, segs.j1,
                                  _fit_weights(int(half)))
+
+
+#: a region chooses its boundary fit (:func:`choose_fit`) on at least this many boundaries that both
+#: windows fit; smaller regions and segments of no region take the frame's choice
+FIT_CHOICE_MIN_BOUNDARIES = 50
+
+
+def fit_weights_loo(half: int) -> tuple[np.ndarray, float]:
+    """The centre weights of the ``2 half + 1``-boundary quadratic fit and the factor that turns a
+    residual (located minus fitted) into the leave-one-out residual, 1 / (1 - w_centre): the
+    position predicted by the same fit to the other ``2 half`` boundaries, exactly (a linear
+    smoother's hat-matrix identity)."""
+    w = _fit_weights(int(half))
+    return w, 1.0 / (1.0 - float(w[int(half)]))
+
+
+def choose_fit(j_x: np.ndarray, segs, seg_region: np.ndarray, half: int, alt_half: int
+               ) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Boundary positions ``j_x`` (n_junctions,) float64 camera px fitted as :func:`fit_boundaries`
+    does, each indexed region with the half window ``half`` or ``alt_half``, whichever predicts
+    the region's boundaries better.
+
+    The score of a window is the sum of the squared leave-one-out residuals
+    (:func:`fit_weights_loo`) over the region's boundaries that both windows fit (a fitted
+    position equal to the located one counts as not fitted: it adds nothing to either sum).  A
+    leave-one-out residual is the locator's noise plus the window's bias, so the sum estimates
+    each window's error up to a constant: the wider window wins where noise dominates, the
+    narrower where the relief changes within the wider one.  ``alt_half`` is taken only when it
+    scores strictly lower.  Regions with fewer than :data:`FIT_CHOICE_MIN_BOUNDARIES` scored
+    boundaries, and segments of no region (``seg_region`` < 0), take the frame's choice (all its
+    scored boundaries).  ``seg_region`` (n_segments,) int.
+
+    Returns (positions, (n_regions,) bool: the region took ``alt_half``, the frame's choice).
+    ``alt_half`` or ``half`` below 2 (a 3-boundary quadratic passes through its boundaries: no
+    leave-one-out prediction), or equal: :func:`fit_boundaries` with ``half``."""
+    from . import kernels
+
+    n_reg = int(seg_region.max()) + 1 if seg_region.size else 0
+    if half < 2 or alt_half < 2 or alt_half == half or j_x.size == 0:
+        return fit_boundaries(j_x, segs, half), np.zeros(n_reg, bool), False
+    x = np.ascontiguousarray(j_x, dtype=np.float64)
+    w_h, k_h = fit_weights_loo(int(half))
+    w_a, k_a = fit_weights_loo(int(alt_half))
+    fit_h = kernels.fit_junctions(x, segs.j0, segs.j1, w_h)
+    fit_a = kernels.fit_junctions(x, segs.j0, segs.j1, w_a)
+    seg_bin = np.where(seg_region >= 0, seg_region, n_reg)   # no region: bin n_reg
+    count, s_half, s_alt = kernels.fit_choice_sums(x, fit_h, fit_a, segs.j0, segs.j1, seg_bin, k_h, k_a, n_reg + 1)
+    frame_alt = bool(s_alt.sum() < s_half.sum())
+    alt = np.where(count >= FIT_CHOICE_MIN_BOUNDARIES, s_alt < s_half, frame_alt)
+    alt[n_reg] = frame_alt
+    if not alt.any():
+        return fit_h, alt[:n_reg], frame_alt
+    return kernels.take_fit(fit_h, fit_a, segs.j0, segs.j1, alt[seg_bin]), alt[:n_reg], frame_alt
 
 
 #: the boundary fit's half window that :func:`correct_locking` measures the locking with when the
@@ -1979,7 +2050,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     j_bnd = kernels.junction_index(segs.j_rel, segs.j_seg, un.seg_P)
     jx64, locking, n_locking = correct_locking(jx.astype(np.float64), segs, params.boundary_fit_half,
                                                params.locking_bins, params.locking_min_count)
-    jx64 = fit_boundaries(jx64, segs, params.boundary_fit_half)
+    jx64, fit_alt, _ = choose_fit(jx64, segs, seg_reg, params.boundary_fit_half, params.boundary_fit_alt_half)
 
     def columns(seg_ok, column_all=None):
         # interpolate_columns for the segments seg_ok; from column_all (every segment's) by a copy
@@ -2089,6 +2160,9 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     stats["boundaries"] = int(np.isfinite(jx).sum())
     # the pixel locking taken out (camera px): junction types corrected, the largest correction
     stats["locking_types"] = n_locking
+    stats["fit_alt_regions"] = int(np.count_nonzero(fit_alt))   # regions that took boundary_fit_alt_half
+    stats["fit_boundaries"] = 2 * int(params.boundary_fit_half) + 1
+    stats["fit_alt_boundaries"] = 2 * int(params.boundary_fit_alt_half) + 1
     stats["locking_max_px"] = round(float(np.abs(locking).max()), 4) if n_locking else 0.0
     stats["weld_retry_px"], stats["weld_split_px"] = retry_gain, split_gain
     # of the "rim" pixels: masked by the guard rows (rim_guard) and by the brightness-step guard

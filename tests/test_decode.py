@@ -981,6 +981,116 @@ def test_boundary_fit_lowers_the_column_error_on_a_plane():
     with pytest.raises(GBError, match="boundary_fit_half"):
         DecodeParams(boundary_fit_half=1.5)
 
+def test_fit_weights_loo_is_the_fit_to_the_other_boundaries():
+    """The leave-one-out residual from the fit's own residual (x - fit) / (1 - w_centre) equals
+    the located position minus the quadratic least-squares fit to the other 2h boundaries at the
+    centre, exactly."""
+    from gbscan.decode import fit_weights_loo
+
+    rng = np.random.default_rng(11)
+    for h in (2, 3, 4, 6):
+        w, k = fit_weights_loo(h)
+        t = np.arange(-h, h + 1, dtype=np.float64)
+        for _ in range(20):
+            x = 50.0 + 3.9 * t + rng.normal(0, 0.3, t.size) + rng.normal(0, 0.05) * t ** 2
+            others = t != 0
+            loo = x[h] - np.polyval(np.polyfit(t[others], x[others], 2), 0.0)
+            assert abs((x[h] - w @ x) * k - loo) < 1e-9, (h, (x[h] - w @ x) * k, loo)
+
+
+def _relief_rows(n_rows, n_j, relief, noise, seed):
+    """``n_rows`` segments of ``n_j`` boundaries ~3.9 camera px apart, with ``relief`` camera px of
+    a sine over 6 boundaries (a surface whose relief changes within the 7-boundary window) and
+    ``noise`` px of locator noise.  Returns (true, located)."""
+    rng = np.random.default_rng(seed)
+    k = np.arange(n_j, dtype=np.float64)
+    true = (20.0 + rng.uniform(0, 5, n_rows)[:, None] + 3.9 * k + 0.004 * k ** 2
+            + relief * np.sin(2 * np.pi * k / 6.0 + rng.uniform(0, 6.3, n_rows)[:, None])).ravel()
+    return true, true + rng.normal(0, noise, true.size)
+
+
+def test_choose_fit_takes_the_narrower_window_where_the_relief_changes_within_the_wider_one():
+    """Per region, the boundary fit whose leave-one-out error is lower: a smooth noisy surface keeps
+    the 7-boundary fit, a surface with relief over 6 boundaries takes the 5-boundary one; a
+    region too small to tell, and segments of no region, take the frame's choice.  Each region's
+    positions are exactly those of the fixed fit it chose, and the chosen fits' error is below
+    either fixed window's over the whole frame."""
+    from types import SimpleNamespace
+
+    from gbscan.decode import FIT_CHOICE_MIN_BOUNDARIES, choose_fit, fit_boundaries
+
+    n_j = 30
+    smooth_t, smooth_x = _relief_rows(120, n_j, 0.0, 0.06, 1)     # region 0
+    relief_t, relief_x = _relief_rows(120, n_j, 0.25, 0.06, 2)    # region 1
+    tiny_t, tiny_x = _relief_rows(2, n_j, 0.0, 0.06, 3)           # region 2: 2 x 24 scored < 50
+    none_t, none_x = _relief_rows(5, n_j, 0.25, 0.06, 4)          # no region
+    assert 2 * (n_j - 6) < FIT_CHOICE_MIN_BOUNDARIES
+    true = np.concatenate([smooth_t, relief_t, tiny_t, none_t])
+    x = np.concatenate([smooth_x, relief_x, tiny_x, none_x])
+    n_seg = 120 + 120 + 2 + 5
+    j0 = (np.arange(n_seg) * n_j).astype(np.int32)
+    segs = SimpleNamespace(j0=j0, j1=(j0 + n_j).astype(np.int32), j_seg=np.repeat(np.arange(n_seg), n_j))
+    seg_region = np.repeat(np.array([0, 1, 2, -1]), [120, 120, 2, 5])
+    out, alt, frame_alt = choose_fit(x, segs, seg_region, 3, 2)
+    f3, f2 = fit_boundaries(x, segs, 3), fit_boundaries(x, segs, 2)
+    assert alt.tolist() == [False, True, frame_alt] and frame_alt    # the relief's region weighs more
+    reg_j = np.repeat(seg_region, n_j)
+    np.testing.assert_array_equal(out[reg_j == 0], f3[reg_j == 0])
+    np.testing.assert_array_equal(out[reg_j == 1], f2[reg_j == 1])
+    np.testing.assert_array_equal(out[reg_j >= 2], f2[reg_j >= 2])
+    np.testing.assert_array_equal(out[reg_j == -1], f2[reg_j == -1])
+    def rms(y, m):
+        return float(np.sqrt(np.mean((y - true)[m] ** 2)))
+
+    for r, better, worse in ((0, f3, f2), (1, f2, f3)):
+        m = reg_j == r
+        print(f"region {r}: boundary error RMS, chosen {rms(better, m):.4f} px, the other window {rms(worse, m):.4f}")
+        assert rms(better, m) < 0.97 * rms(worse, m)
+    every = np.ones(true.size, bool)
+    assert rms(out, every) < min(rms(f3, every), rms(f2, every))
+    # no choice: alt_half 0, equal to half, or a window below 2; half 0 leaves the positions
+    for half, alt_half in ((3, 0), (3, 3), (3, 1), (1, 2)):
+        o, a, fa = choose_fit(x, segs, seg_region, half, alt_half)
+        np.testing.assert_array_equal(o, fit_boundaries(x, segs, half))
+        assert not a.any() and not fa
+    assert choose_fit(x, segs, seg_region, 0, 2)[0] is x
+
+
+def _bumpy_scene(amplitude_mm, wavelength_mm, z0=650.0):
+    """A wall at ``z0`` mm with bumps: amplitude_mm sin(2 pi x / wavelength) cos(2 pi y / (1.7 wavelength))."""
+    x = np.linspace(-110.0, 110.0, 441)
+    y = np.linspace(-90.0, 90.0, 361)
+    X, Y = np.meshgrid(x, y)
+    Z = z0 + amplitude_mm * np.sin(2 * np.pi * X / wavelength_mm) * np.cos(2 * np.pi * Y / (1.7 * wavelength_mm))
+    return sim.scenes.mesh(np.stack([X, Y, Z], -1).reshape(-1, 3), sim.scenes._grid_triangles(x.size, y.size), 0.7)
+
+
+def test_bumpy_surfaces_take_the_narrower_boundary_fit_and_smooth_ones_do_not():
+    """Issue 3's sub-pixel localisation on relief that changes within the 7-boundary fit (bumps of
+    1 mm over 20 mm at 650 mm, as a face's cheeks and lips): the regions choose the 5-boundary fit
+    and the column RMS drops by more than a quarter (measured 0.141 -> 0.085 projector px); on the
+    flat plane no region does and the maps are the same as without the choice."""
+    r = sim.render(sim.paper_rig(), _bumpy_scene(1.0, 20.0), render_pattern(PatternSpec()), "typical", seed=0)
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(boundary_fit_alt_half=0))
+    sm = decode(r.image, PatternSpec())
+    s0, s1 = scores(sm0, r), scores(sm, r)
+    print(f"bumpy wall column RMS, 7-boundary fit / chosen: {s0['rms_px']:.4f} / {s1['rms_px']:.4f} px "
+          f"({sm.stats['fit_alt_regions']} regions took 5)")
+    assert sm.stats["fit_alt_regions"] >= 1 and sm0.stats["fit_alt_regions"] == 0
+    from gbscan.commands.decode import summary
+    assert "fitted over 5 boundaries instead of 7" in summary(sm) and "fitted over" not in summary(sm0)
+    assert s1["rms_px"] < 0.75 * s0["rms_px"], (s0, s1)
+    assert s1["index_ok"] == 1.0 and abs(s1["coverage"] - s0["coverage"]) < 0.002
+    rp = render("plane")
+    a, b = decode(rp.image, PatternSpec()), decode(rp.image, PatternSpec(), DecodeParams(boundary_fit_alt_half=0))
+    assert a.stats["fit_alt_regions"] == 0
+    for name in ("column", "stripe", "mask", "confidence", "column_sigma"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    for bad in (-1, 1, 1.5, 11, True):
+        with pytest.raises(GBError, match="boundary_fit_alt_half"):
+            DecodeParams(boundary_fit_alt_half=bad)
+
+
 def _locked_rows(curve, n_rows=300, spacing=4.22, n_j=40, noise=0.0, seed=0):
     """Synthetic junctions: ``n_rows`` segments of ``n_j`` boundaries ``spacing`` camera px apart
     (each row starting at another sub-pixel phase), alternating green|blue and blue|green, located

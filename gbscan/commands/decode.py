@@ -231,6 +231,10 @@ def summary(sm) -> str:
                  f"{st.get('boundaries', 0)} stripe boundaries")
         if st.get("transitions_joined"):
             text += f", {st['transitions_joined']} one-pixel stripe transitions called dark joined"
+        if st.get("fit_alt_regions"):
+            n_alt = st["fit_alt_regions"]
+            text += (f"; {n_alt} region{'s' if n_alt > 1 else ''} fitted over {st['fit_alt_boundaries']} boundaries "
+                     f"instead of {st['fit_boundaries']} (their relief changes within {st['fit_boundaries']})")
         text += ". "
         again = [f"{st[key]} px indexed {how}" for key, how in (
             ("weld_retry_px", "after cutting their rows at weaker spacing jumps"),

@@ -683,6 +683,52 @@ def _n_nan(x):
 
 
 @njit(cache=True, nogil=True)
+def fit_choice_sums(j_x, fit_a, fit_b, seg_j0, seg_j1, seg_bin, k_a, k_b, n_bins):
+    """The scores of two boundary fits (:func:`gbscan.decode.choose_fit`), summed per bin.
+
+    ``j_x`` (n_j,) float64 located positions; ``fit_a``, ``fit_b`` (n_j,) their two fits
+    (:func:`fit_junctions`: a position the fit left as located is not scored); ``seg_bin``
+    (n_segments,) int the bin of each segment's junctions, in [0, n_bins); ``k_a``, ``k_b`` the
+    factors that turn a fit's residual into its leave-one-out residual.  Returns (count, sum_a,
+    sum_b), each (n_bins,): the junctions both fits fitted and the sums of their squared
+    leave-one-out residuals."""
+    count = np.zeros(n_bins, np.int64)
+    sum_a = np.zeros(n_bins, np.float64)
+    sum_b = np.zeros(n_bins, np.float64)
+    for s in range(seg_j0.shape[0]):
+        r = seg_bin[s]
+        c = 0
+        sa = 0.0
+        sb = 0.0
+        for j in range(seg_j0[s], seg_j1[s]):
+            x = j_x[j]
+            a = fit_a[j]
+            b = fit_b[j]
+            if a != x and b != x and np.isfinite(x):
+                ea = (x - a) * k_a
+                eb = (x - b) * k_b
+                c += 1
+                sa += ea * ea
+                sb += eb * eb
+        count[r] += c
+        sum_a[r] += sa
+        sum_b[r] += sb
+    return count, sum_a, sum_b
+
+
+@njit(cache=True, nogil=True)
+def take_fit(fit_a, fit_b, seg_j0, seg_j1, seg_take_b):
+    """(n_j,) float64: each segment's junctions from ``fit_b`` where ``seg_take_b`` (n_segments,)
+    bool says so, else from ``fit_a`` (junctions of no segment: ``fit_a``)."""
+    out = fit_a.copy()
+    for s in range(seg_j0.shape[0]):
+        if seg_take_b[s]:
+            for j in range(seg_j0[s], seg_j1[s]):
+                out[j] = fit_b[j]
+    return out
+
+
+@njit(cache=True, nogil=True)
 def fit_junctions(j_x, seg_j0, seg_j1, coef):
     """Boundary positions refined by a local polynomial fit along each segment.
 
