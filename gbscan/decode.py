@@ -2160,10 +2160,11 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     stats["boundaries"] = int(np.isfinite(jx).sum())
     # the pixel locking taken out (camera px): junction types corrected, the largest correction
     stats["locking_types"] = n_locking
-    stats["fit_alt_regions"] = int(np.count_nonzero(fit_alt))   # regions that took boundary_fit_alt_half
+    stats["locking_max_px"] = round(float(np.abs(locking).max()), 4) if n_locking else 0.0
+    # the boundary fit's windows (boundaries) and the regions that took the narrower one (choose_fit)
     stats["fit_boundaries"] = 2 * int(params.boundary_fit_half) + 1
     stats["fit_alt_boundaries"] = 2 * int(params.boundary_fit_alt_half) + 1
-    stats["locking_max_px"] = round(float(np.abs(locking).max()), 4) if n_locking else 0.0
+    stats["fit_alt_regions"] = int(np.count_nonzero(fit_alt))
     stats["weld_retry_px"], stats["weld_split_px"] = retry_gain, split_gain
     # of the "rim" pixels: masked by the guard rows (rim_guard) and by the brightness-step guard
     stats["rim_guard_px"], stats["rim_step_px"] = int(n_guard), int(n_step)

@@ -1048,6 +1048,10 @@ def test_choose_fit_takes_the_narrower_window_where_the_relief_changes_within_th
         assert rms(better, m) < 0.97 * rms(worse, m)
     every = np.ones(true.size, bool)
     assert rms(out, every) < min(rms(f3, every), rms(f2, every))
+    # a position that is not finite (NaN: not located; an infinity) is not scored: the same choice
+    bad = x.copy()
+    bad[[40, 41, 3605]] = [np.nan, np.inf, -np.inf]
+    assert choose_fit(bad, segs, seg_region, 3, 2)[1].tolist() == alt.tolist()
     # no choice: alt_half 0, equal to half, or a window below 2; half 0 leaves the positions
     for half, alt_half in ((3, 0), (3, 3), (3, 1), (1, 2)):
         o, a, fa = choose_fit(x, segs, seg_region, half, alt_half)

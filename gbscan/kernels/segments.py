@@ -687,7 +687,8 @@ def fit_choice_sums(j_x, fit_a, fit_b, seg_j0, seg_j1, seg_bin, k_a, k_b, n_bins
     """The scores of two boundary fits (:func:`gbscan.decode.choose_fit`), summed per bin.
 
     ``j_x`` (n_j,) float64 located positions; ``fit_a``, ``fit_b`` (n_j,) their two fits
-    (:func:`fit_junctions`: a position the fit left as located is not scored); ``seg_bin``
+    (:func:`fit_junctions`: a position the fit left as located, or a fit that is not finite, is
+    not scored); ``seg_bin``
     (n_segments,) int the bin of each segment's junctions, in [0, n_bins); ``k_a``, ``k_b`` the
     factors that turn a fit's residual into its leave-one-out residual.  Returns (count, sum_a,
     sum_b), each (n_bins,): the junctions both fits fitted and the sums of their squared
@@ -704,7 +705,7 @@ def fit_choice_sums(j_x, fit_a, fit_b, seg_j0, seg_j1, seg_bin, k_a, k_b, n_bins
             x = j_x[j]
             a = fit_a[j]
             b = fit_b[j]
-            if a != x and b != x and np.isfinite(x):
+            if a != x and b != x and np.isfinite(x) and np.isfinite(a) and np.isfinite(b):
                 ea = (x - a) * k_a
                 eb = (x - b) * k_b
                 c += 1
