@@ -1196,10 +1196,8 @@ def choose_fit(j_x: np.ndarray, segs, seg_region: np.ndarray, half: int, alt_hal
     if half < 2 or alt_half < 2 or alt_half == half or j_x.size == 0:
         return fit_boundaries(j_x, segs, half), np.zeros(n_reg, bool), False
     x = np.ascontiguousarray(j_x, dtype=np.float64)
-    w_h, k_h = fit_weights_loo(int(half))
-    w_a, k_a = fit_weights_loo(int(alt_half))
-    fit_h = kernels.fit_junctions(x, segs.j0, segs.j1, w_h)
-    fit_a = kernels.fit_junctions(x, segs.j0, segs.j1, w_a)
+    fit_h, fit_a = fit_boundaries(x, segs, half), fit_boundaries(x, segs, alt_half)
+    k_h, k_a = fit_weights_loo(int(half))[1], fit_weights_loo(int(alt_half))[1]
     seg_bin = np.where(seg_region >= 0, seg_region, n_reg)   # no region: bin n_reg
     count, s_half, s_alt = kernels.fit_choice_sums(x, fit_h, fit_a, segs.j0, segs.j1, seg_bin, k_h, k_a, n_reg + 1)
     frame_alt = bool(s_alt.sum() < s_half.sum())

@@ -1029,7 +1029,7 @@ def test_choose_fit_takes_the_narrower_window_where_the_relief_changes_within_th
     x = np.concatenate([smooth_x, relief_x, tiny_x, none_x])
     n_seg = 120 + 120 + 2 + 5
     j0 = (np.arange(n_seg) * n_j).astype(np.int32)
-    segs = SimpleNamespace(j0=j0, j1=(j0 + n_j).astype(np.int32), j_seg=np.repeat(np.arange(n_seg), n_j))
+    segs = SimpleNamespace(j0=j0, j1=(j0 + n_j).astype(np.int32))
     seg_region = np.repeat(np.array([0, 1, 2, -1]), [120, 120, 2, 5])
     out, alt, frame_alt = choose_fit(x, segs, seg_region, 3, 2)
     f3, f2 = fit_boundaries(x, segs, 3), fit_boundaries(x, segs, 2)
