@@ -219,6 +219,23 @@ class UnwrapParams:
         a thin strip of wall was linked 8 stripes off (its one marker fits both offsets); the
         rule takes the sweep's wrong non-edge pixels 688 -> 0 at that blur for 0.05-0.16 points
         of coverage at every blur of 1-3 px.
+    link_grad_tol, link_grad_z, link_grad_rows : the gradient test of :func:`link_components`
+        for a component of more than ``link_hang_rows`` rows whose agreeing votes come from
+        fewer than ``link_slope_below_rows`` rows and none along a row (it touches the reported
+        pixels at its top or bottom rows only: a horizontal contact) and which shows fewer than
+        ``min_markers`` marker stripes of its own at the linked offset.  At such a contact two
+        surfaces' stripes line up for an even shift and their slopes along the row may match as
+        well; the column's gradient along the stripes (``d column / d v``, over
+        ``link_grad_rows`` rows each side of the contact) then still changes with the surface's
+        tilt.  The component is not linked when the median change exceeds ``link_grad_tol`` px
+        per row with a z-score over ``link_grad_z`` (``link_grad_tol=0`` disables).  The
+        multi-object scene's tilted panel at 140-160 mm baselines (its gradient -0.17 px per row,
+        the wall's 0.00; ``scripts/sweep_decode.py --set baselines``, seeds 0-2): wrong non-edge
+        pixels 1994 -> 1179 (140 mm: 483 -> 24; the rest is a strip of the panel welded along its
+        rows into the wall's region).  The 48-scene sweep, the room-light frames and the blur grid
+        are unchanged; the clean preset loses one correct component of a head (0.12 px per row at
+        z 14: 82.12 -> 81.87 % reported).  The real face's hanging components reach 0.11-0.26 px
+        per row at z 5-8 (its relief): z 5 would cost it 1.0-1.4 points.
     retry_spacing_ratio, retry_min_px : a region of at least ``retry_min_px`` pixels whose
         markers do not fit the pattern or leave its offset ambiguous is often two surfaces welded
         along a silhouette where the boundary spacing jumps by less than ``spacing_ratio`` (the
@@ -279,6 +296,9 @@ class UnwrapParams:
     link_slope_half_px: int = 8
     link_slope_below_rows: int = 3
     link_slope_unmeasured: bool = True
+    link_grad_tol: float = 0.1
+    link_grad_z: float = 10.0
+    link_grad_rows: int = 6
     volume_frac: float = 0.5
     retry_spacing_ratio: float = 1.2
     retry_min_px: int = 1000
@@ -301,6 +321,9 @@ class UnwrapParams:
                           f"{self.index_margin_events}")
         if int(self.link_hang_rows) < 0:
             raise GBError(f"UnwrapParams.link_hang_rows must be >= 0 (0 disables), got {self.link_hang_rows}")
+        if not float(self.link_grad_tol) >= 0 or not float(self.link_grad_z) >= 0 or int(self.link_grad_rows) < 2:
+            raise GBError(f"UnwrapParams.link_grad_tol and link_grad_z must be >= 0 (link_grad_tol 0 disables) and "
+                          f"link_grad_rows >= 2, got {self.link_grad_tol}, {self.link_grad_z}, {self.link_grad_rows}")
         if int(self.min_believable_junctions) < 0 or int(self.link_rows) < 1 or int(self.link_reach_rows) < 0:
             raise GBError(f"UnwrapParams.min_believable_junctions and link_reach_rows must be >= 0, link_rows >= 1, "
                           f"got {self.min_believable_junctions}, {self.link_reach_rows}, {self.link_rows}")
@@ -1132,7 +1155,10 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
     markers there (at most ``link_marker_frac`` contradicting pixels).  A component hanging from
     a contact of few rows (taller than ``link_reach_rows`` with votes from fewer than
     ``link_slope_below_rows`` rows, or taller than ``link_hang_rows`` with votes from one row)
-    must also show the column's slope along the row continuing, measurably (:func:`_slope_jumps`).
+    must also show the column's slope along the row continuing, measurably (:func:`_slope_jumps`);
+    one tied to the reported pixels only through fewer than ``link_slope_below_rows`` rows (no
+    vote along a row) and seeing fewer than ``min_markers`` marker stripes of its own at the
+    offset, its column's gradient along the stripes continuing too (:func:`_gradient_jumps`).
     Otherwise the component stays dropped: a guess is never made. Where two surfaces meet with their
     stripes lined up (an even shift) and no marker nearby, continuity cannot tell them apart: that
     is the residual risk, the same as the unwrapping's own vertical links (``link_rows`` narrows it,
@@ -1144,7 +1170,7 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
     segs = un.segments
     w = float(pattern.stripe_px)
     stats = {"components_tried": 0, "components_linked": 0, "pixels_linked": 0, "refused_votes": 0,
-             "refused_markers": 0, "refused_slope": 0, "refused_unmeasured": 0}
+             "refused_markers": 0, "refused_slope": 0, "refused_unmeasured": 0, "refused_gradient": 0}
     empty = Links(un.seg_region.astype(np.int32), idx.offset.astype(np.int64).copy(), idx.indexed.copy(),
                   np.zeros(n_reg, bool), np.zeros(n_reg, np.int64), np.zeros(n_reg, np.int64), stats)
     if params.link_votes <= 0 or segs.n == 0 or un.seg_root is None:
@@ -1184,6 +1210,7 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
               & ((b_rows >= params.link_rows) | ~tall)
               & (bcnt >= params.link_agree_frac * n_all[bc]))
         accept_c, accept_k, accept_n = bc[ok], bk[ok], bcnt[ok]
+        acc_rows, acc_height = b_rows[ok], height[ok]
         few_rows = (tall & (b_rows < params.link_slope_below_rows))[ok] if params.link_slope_below_rows > 0 \
             else np.ones(accept_c.size, bool)
         if params.link_hang_rows > 0:
@@ -1207,6 +1234,7 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
             stats["refused_slope"], stats["refused_unmeasured"] = int(jumps.sum()), int(blind.sum())
             keep = ~(jumps | blind)
             accept_c, accept_k, accept_n = accept_c[keep], accept_k[keep], accept_n[keep]
+            acc_rows, acc_height = acc_rows[keep], acc_height[keep]
     stats["refused_votes"] = (stats["components_tried"] - int(accept_c.size) - stats["refused_slope"]
                               - stats["refused_unmeasured"])
     # the markers at the linked offset must agree with the component's colours
@@ -1222,6 +1250,42 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
         fits = n_bad[accept_c] <= params.link_marker_frac * n_px[accept_c]
         stats["refused_markers"] = int((~fits).sum())
         accept_c, accept_k, accept_n = accept_c[fits], accept_k[fits], accept_n[fits]
+        acc_rows, acc_height = acc_rows[fits], acc_height[fits]
+    if accept_c.size and params.link_grad_tol > 0:
+        # a component tied to the reported pixels only through its top or bottom rows (votes from
+        # few rows, none along a row) hangs at a horizontal contact, where two surfaces' stripes
+        # line up for an even shift and their slopes along the row may match as well (a tilted
+        # panel before a wall, 8 stripes apart at 140-160 mm baselines).  Unless markers of its
+        # own fix the offset, the column's gradient along the stripes must continue too
+        hang = acc_height > params.link_hang_rows
+        if params.link_slope_below_rows > 0:
+            hang &= acc_rows < params.link_slope_below_rows
+        if hang.any():
+            # agreeing votes along a row (a side contact) at the component's offset
+            off_of = np.full(segs.n, np.iinfo(np.int64).min, np.int64)
+            off_of[accept_c] = accept_k
+            side = good & (vl < 0)
+            side[side] = off_of[vc[side]] == k[side]
+            has_side = np.zeros(segs.n, bool)
+            has_side[vc[side]] = True
+            hang &= ~has_side[accept_c]
+        refuse = np.zeros(accept_c.size, bool)
+        if hang.any():
+            refuse[hang] = _gradient_jumps(vc, k, vl, vv, good, comp, cr, col_abs, accept_c[hang], accept_k[hang],
+                                           params)
+        if refuse.any():
+            # markers of its own fix the offset: such a component is linked whatever its gradient
+            slot = np.full(segs.n, -1, np.int64)
+            slot[accept_c[refuse]] = np.arange(int(refuse.sum()))
+            shift = np.zeros(segs.n, np.int64)
+            shift[accept_c] = 2 * accept_k
+            seen = kernels.component_markers_seen(comp, np.ascontiguousarray(un.relative, dtype=np.int32),
+                                                  np.ascontiguousarray(labels, dtype=np.uint8), shift, slot,
+                                                  int(refuse.sum()), pattern.is_marker(), int(params.min_marker_px))
+            refuse[refuse] = seen < params.min_markers
+            stats["refused_gradient"] = int(refuse.sum())
+            keep = ~refuse
+            accept_c, accept_k, accept_n = accept_c[keep], accept_k[keep], accept_n[keep]
     if not accept_c.size:
         return empty
     # a linked kept region keeps its id; a linked small component gets a new one
@@ -1248,6 +1312,38 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
     stats["components_linked"] = int(accept_c.size)
     stats["pixels_linked"] = int((segs.u1[mv] - segs.u0[mv] + 1).sum())
     return Links(seg_region, offset, indexed, linked, votes, dissent, stats)
+
+
+_GRAD_MIN_VOTES = 5  # measured votes a component needs before its gradient along the stripes can refuse it
+_GRAD_NOISE_FLOOR = 0.005  # smallest spread (px per row, MAD) assumed of one vote's gradient difference
+
+
+def _gradient_jumps(vc, vk, vl, vv, good, comp, col_rel, col_abs, comps, offsets, params) -> np.ndarray:
+    """(len(comps),) bool: the column's gradient along the stripes (``d column / d v``) jumps
+    where the component meets the reported pixels it is linked to.
+
+    The agreeing vertical votes of each component at its offset (``vc, vk, vl, vv, good`` of
+    :func:`link_components`) are measured as :func:`gbscan.kernels.stripe_gradient_jumps` does
+    (``link_grad_rows`` rows each side; one compiled pass, :func:`gbscan.kernels.
+    gradient_jump_verdicts`); with at least ``_GRAD_MIN_VOTES`` measured, the median
+    difference must not exceed ``link_grad_tol`` px per row in size while exceeding
+    ``link_grad_z`` standard errors (``1.4826 * MAD / sqrt(n)``, the MAD at least
+    ``_GRAD_NOISE_FLOOR``).  Without enough measured votes a component is not flagged.
+    """
+    from . import kernels
+
+    comps = np.asarray(comps, dtype=np.int64)
+    if comps.size == 0:
+        return np.zeros(0, bool)
+    slot = np.full(max(int(comps.max()), int(vc.max())) + 1, -1, np.int64)
+    slot[comps] = np.arange(comps.size)
+    return kernels.gradient_jump_verdicts(
+        np.ascontiguousarray(vc, dtype=np.int64), np.ascontiguousarray(vk, dtype=np.int64),
+        np.ascontiguousarray(vl, dtype=np.int64), np.ascontiguousarray(vv, dtype=np.int64),
+        np.ascontiguousarray(good, dtype=np.bool_), np.ascontiguousarray(comp, dtype=np.int32),
+        np.ascontiguousarray(col_rel, dtype=np.float32), np.ascontiguousarray(col_abs, dtype=np.float32), slot,
+        np.asarray(offsets, dtype=np.int64), int(params.link_grad_rows), float(params.link_grad_tol),
+        float(params.link_grad_z), _GRAD_MIN_VOTES, _GRAD_NOISE_FLOOR)
 
 
 _SLOPE_MIN_VOTES = 5  # measurable votes a component needs before its slope can refuse it

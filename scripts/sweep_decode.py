@@ -20,6 +20,7 @@ pixel with the simulator's truth (``r.proj_xy``):
     python scripts/sweep_decode.py --cache DIR --jpeg 90 --jpeg-sampling 4:4:4   # frames stored as JPEG
     python scripts/sweep_decode.py --cache DIR --set room-light   # warm and cool room light (44 frames)
     python scripts/sweep_decode.py --cache DIR --set clean        # the clean preset (16 frames)
+    python scripts/sweep_decode.py --cache DIR --set baselines    # other baselines (33 frames)
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
 wrong non-edge pixels under it (all wrong regions with ``--edges``), and a total.  Progress lines go to stderr.  Renders are cached in ``--cache`` (npz).
@@ -40,7 +41,7 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 
 
 #: the frame sets of ``--set``: the sweep's 48 scenes, the same objects under room light, the clean preset
-SETS = ("main", "room-light", "clean")
+SETS = ("main", "room-light", "clean", "baselines")
 
 
 def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str, int, int, object]]:
@@ -55,6 +56,8 @@ def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str,
         return _room_light(S, quick)
     if which == "clean":
         return _clean_set(S, quick)
+    if which == "baselines":
+        return _baseline_set(S, quick)
     if which != "main":
         raise ValueError(f"unknown frame set {which!r}, expected one of {SETS}")
     out = []
@@ -138,6 +141,29 @@ def _clean_set(S, quick: bool) -> list:
     return out[::3] if quick else out
 
 
+#: the baselines of the ``baselines`` set (mm); the paper rig's other dimensions stay
+BASELINES_MM = (100, 125, 140, 150, 160, 175, 190, 200, 225, 250, 300)
+
+
+def _baseline_set(S, quick: bool) -> list:
+    # the multi-object scene at 650 mm with the projector at other baselines (seeds 0-2): where two
+    # surfaces' stripes line up differs with the baseline (docs/method.md "Baseline 200 mm")
+    out = []
+    for b in BASELINES_MM:
+        for seed in range(3):
+            out.append((f"multi_650_b{b}_s{seed}", f"typical/b{b}", seed, 3, lambda: S.multi_object(650.0)))
+    return out[::3] if quick else out
+
+
+def _rig_and_preset(preset: str):
+    """(the paper rig, at the baseline of a ``P/bB`` preset string's suffix when there, the preset
+    without it)."""
+    from gbscan import sim
+
+    base, _, b = preset.partition("/b")
+    return sim.paper_rig(baseline_mm=float(b)) if b else sim.paper_rig(), base
+
+
 #: the ``@cool`` preset suffix's room light (red, green, blue per unit of level); ``@warm`` is
 #: ``gbscan.cli_common.AMBIENT_TINT_RGB``, the simulator's ``--ambient``
 COOL_TINT_RGB = (0.6, 0.8, 1.0)
@@ -168,12 +194,14 @@ def load_or_render(name, preset, seed, ss, factory, cache: Path | None, jpeg: di
     tag = ""
     if jpeg and jpeg["jpeg_quality"]:
         tag = f"_jpeg{jpeg['jpeg_quality']}_{jpeg['jpeg_sampling'].replace(':', '')}"
-    f = cache / f"{name}_{preset.replace('+', '_').replace('@', '_')}_ss{ss}{tag}.npz" if cache is not None else None
+    f = cache / f"{name}_{preset.replace('+', '_').replace('@', '_').replace('/', '_')}_ss{ss}{tag}.npz" \
+        if cache is not None else None
     if f is not None and f.exists():
         z = np.load(f)
         return z["image"], z["truth"], z["depth_edge"], z["lit"]
+    rig, preset = _rig_and_preset(preset)
     cond = _conditions(preset, ss, jpeg)
-    r = sim.render(sim.paper_rig(), factory(), render_pattern(PatternSpec()), cond, seed=seed)
+    r = sim.render(rig, factory(), render_pattern(PatternSpec()), cond, seed=seed)
     out = (r.image, r.proj_xy[..., 0].astype(np.float32), r.depth_edge, r.lit)
     if f is not None:
         save_npz(f, image=out[0], truth=out[1], depth_edge=out[2], lit=out[3])
@@ -276,7 +304,9 @@ def main(argv=None) -> int:
     ap.add_argument("--set", default="main", choices=SETS,
                     help="the frames: main (the 48 scenes, default), room-light (44 frames: warm light 0.05-0.4 on "
                          "sphere / head / multi-object / step, cool light 0.15, 0.25 on the first three, seeds "
-                         "0-1; docs/method.md 'Ambient light'), clean (the clean preset, 16 frames)")
+                         "0-1; docs/method.md 'Ambient light'), clean (the clean preset, 16 frames), baselines "
+                         "(the multi-object scene with the projector 100-300 mm from the camera, seeds 0-2, 33 "
+                         "frames; docs/method.md 'Baseline 200 mm')")
     ap.add_argument("--edges", action="store_true", help="also list regions wrong only on depth-edge pixels")
     ap.add_argument("--unwrap", action="append", default=[], metavar="NAME=VALUE",
                     help="override an UnwrapParams field (repeatable), e.g. --unwrap link_rows=3")
@@ -325,6 +355,8 @@ def main(argv=None) -> int:
     scenes = [s for s in scene_list(args.quick, args.set) if not args.only or args.only in s[0]]
     if args.depth_range is not None and not 0 < args.depth_range[0] < args.depth_range[1]:
         ap.error(f"--depth-range: expected 0 < MIN_MM < MAX_MM, got {args.depth_range}")
+    if args.depth_range is not None and args.set == "baselines":
+        ap.error("--depth-range: the working volume is the 200 mm rig's; not with --set baselines")
     volume = working_volume(args.depth_range)
     if sigmas:
         print(f"{'blur_px':>7s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'bad scenes':>10s}")

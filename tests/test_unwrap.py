@@ -1,4 +1,6 @@
 """The seven unwrapping steps and the marker indexing on small synthetic label images."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -331,11 +333,190 @@ def test_link_components_refuses_another_surface(shift):
     assert lk.stats["refused_votes" if shift % 2 else "refused_markers"] >= 1
 
 
+def hanging_patch(spec: PatternSpec, width: int, first: int = 10, px: int = 3):
+    """Stripes ``first..`` (``px`` camera px each, 60 rows) with a patch of 10 rows (24-33) and
+    ``width`` px cut off above by two dark rows and on its right by a dark gap of 3 px: a
+    component tied to the rows below it alone (its votes all come from its bottom row)."""
+    lab = stripe_image(spec, first, 40, px=px, rows=60)
+    lab[22:24, :width + 3] = NONE
+    lab[24:34, width:width + 3] = NONE
+    return np.ascontiguousarray(lab)
+
+
+def link_hanging(spec, lab, p, grad: float = 0.0, width: int = 0, px: int = 3):
+    """unwrap, index and link ``lab`` (columns exact from the relative index); the patch's
+    columns (rows 24-33, ``width`` px) tilt by ``grad`` projector px per row along the stripes,
+    continuing the rows below at the contact row 33."""
+    u = uw.unwrap(lab, p)
+    idx = uw.index_regions(lab, u.relative, u.region, u.region_px.size, spec, p)
+    uu = np.arange(lab.shape[1])
+    col_rel = (u.relative * spec.stripe_px + (((uu % px) + 0.5) * spec.stripe_px / px - 0.5)).astype(np.float32)
+    col_rel[24:34, :width] += (grad * (np.arange(24, 34) - 33.0)).astype(np.float32)[:, None]
+    reg = np.where(u.region >= 0, u.region, idx.offset.size)
+    ind, off = np.r_[idx.indexed, False][reg], np.r_[idx.offset, 0][reg]
+    col_abs = np.where(ind, col_rel + off * spec.stripe_px, np.nan).astype(np.float32)
+    return u, idx, uw.link_components(lab, u, idx, np.where(lab > 0, col_rel, np.nan), col_abs, spec, p)
+
+
+@pytest.mark.parametrize("width, grad, linked_px", [(15, 0.0, 150), (15, 0.05, 150), (15, 0.3, 0), (15, -0.2, 0),
+                                                    (27, 0.3, 270)])
+def test_component_hanging_at_a_gradient_step_is_not_linked(width, grad, linked_px):
+    """The gradient test of ``link_components``: a component of 10 rows tied to the reported rows
+    below by its bottom row alone (no vote along a row), its columns continuing there, is not
+    linked when its column's gradient along the stripes jumps at the contact by more than
+    ``link_grad_tol`` (0.1 px per row): a surface of another tilt whose stripes line up with
+    these (the multi-object scene's panel at 140-160 mm baselines, -0.17 px per row against the
+    wall's 0).  15 px wide it shows one marker (11): 0 and 0.05 px per row are linked, 0.3 and
+    -0.2 refused.  27 px wide it shows two (11, 16), which fix the offset themselves: linked."""
+    spec = PatternSpec()
+    lab = hanging_patch(spec, width)
+    p = uw.UnwrapParams(min_region_px=150, min_marker_px=5)
+    u, idx, lk = link_hanging(spec, lab, p, grad, width)
+    assert not idx.indexed[u.region[28, 5]]            # the patch alone: too few markers
+    assert lk.stats["components_linked"] == (linked_px > 0) and lk.stats["pixels_linked"] == linked_px
+    assert lk.stats["refused_gradient"] == (linked_px == 0)
+    if linked_px:
+        r = lk.seg_region[u.segments.seg[28, 5]]
+        assert u.relative[28, 5] + lk.offset[r] == 10 + 5 // 3   # the true stripe
+    _, _, lk0 = link_hanging(spec, lab, dataclasses.replace(p, link_grad_tol=0.0), grad, width)   # the test off
+    assert lk0.stats["components_linked"] == 1 and lk0.stats["refused_gradient"] == 0
+    # a component of at most link_hang_rows rows is not asked (the 5-row patch of patch_scene)
+    lab5, col5 = patch_scene(spec)
+    assert linked(spec, lab5, col5, p)[2].stats["components_linked"] == 1
+
+
+def test_stripe_gradient_jumps_kernel_equals_least_squares():
+    """kernels.stripe_gradient_jumps against np.polyfit: random columns with a gradient step at
+    contacts above and below, components cut short (fewer than 3 rows: NaN) and unlisted ones."""
+    from gbscan import kernels
+
+    rng = np.random.default_rng(5)
+    H, W, rows = 40, 30, 6
+    comp = np.full((H, W), -1, np.int32)
+    comp[10:20, :] = 0            # hangs from the rows below (20..)
+    comp[25:40, 10:20] = 1        # hangs from the rows above (20-24)
+    comp[2:4, :] = 2              # two rows only: not measurable
+    col_rel = rng.normal(0, 0.05, (H, W)).astype(np.float32) + 0.3 * np.arange(H, dtype=np.float32)[:, None]
+    col_abs = np.full((H, W), np.nan, np.float32)
+    col_abs[20:, :] = (rng.normal(0, 0.05, (20, W)) - 0.1 * np.arange(20)[:, None]).astype(np.float32)
+    col_abs[25:, 10:20] = np.nan
+    col_abs[4:6, :] = 0.0
+    col_abs[:2, :] = 1.0
+    vc = np.array([0, 0, 1, 1, 2, 0], np.int64)
+    vl = np.array([3, 7, 12, 15, 5, -1 - 19], np.int64)    # the last: a vote along a row (not measured)
+    vv = np.array([19, 19, 25, 25, 3, 19], np.int64)
+    slot = np.array([0, 1, 2], np.int64)
+    got = kernels.stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows)
+
+    def ls(y, x):
+        return np.polyfit(x.astype(float), y.astype(float), 1)[0]
+
+    for i in range(vc.size):
+        c, u, v = vc[i], vl[i], vv[i]
+        if u < 0 or c == 2:
+            assert np.isnan(got[i])
+            continue
+        d = -1 if c == 1 else 1
+        rin = np.array([v - d * j for j in range(rows + 1)])
+        rin = rin[(rin >= 0) & (rin < H)]
+        rin = rin[np.cumprod(comp[rin, u] == c).astype(bool)]
+        rout = np.array([v + d * (j + 1) for j in range(rows + 1)])
+        rout = rout[(rout >= 0) & (rout < H)]
+        rout = rout[np.cumprod(np.isfinite(col_abs[rout, u])).astype(bool)]
+        want = ls(col_rel[rin, u], rin) - ls(col_abs[rout, u], rout)
+        assert got[i] == pytest.approx(want, abs=1e-6), (i, got[i], want)
+    assert not np.isnan(got[:4]).any()
+    # the components' gradient (0.3 px per row) against the reported rows' (-0.1), below and above
+    assert got[0] == pytest.approx(0.4, abs=0.05) and got[2] == pytest.approx(0.4, abs=0.05)
+    # a component not listed (slot -1) is not measured
+    assert np.isnan(kernels.stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, np.array([-1, 1, 2]), rows)[0])
+
+
+def test_gradient_jump_verdicts_equal_the_median_test_over_the_measured_votes():
+    """kernels.gradient_jump_verdicts (link_components' one pass) against the votes measured by
+    kernels.stripe_gradient_jumps and the median / MAD test written in numpy: random components
+    hanging from reported rows at random gradients, votes at other offsets or not agreeing left
+    out, components with too few measured votes never flagged."""
+    from gbscan import kernels
+
+    rng = np.random.default_rng(11)
+    H, W, rows = 80, 60, 6
+    verdicts = []
+    for trial in range(20):
+        comp = np.full((H, W), -1, np.int32)
+        col_rel = np.full((H, W), np.nan, np.float32)
+        col_abs = (rng.normal(0, 0.03, (H, W)) + rng.normal(0, 0.05) * np.arange(H)[:, None]).astype(np.float32)
+        votes = []
+        for c in range(4):            # component c: rows 10c+2 .. 10c+9 over random columns, votes at its last row
+            r0, r1 = 20 * c + 2, 20 * c + 10
+            u0, u1 = sorted(rng.integers(0, W, 2))
+            comp[r0:r1, u0:u1 + 1] = c
+            col_abs[r0:r1, u0:u1 + 1] = np.nan
+            g = rng.choice([0.0, 0.05, 0.2, -0.3])
+            col_rel[r0:r1, u0:u1 + 1] = (rng.normal(0, rng.choice([0.005, 0.05]), (r1 - r0, u1 - u0 + 1))
+                                         + g * np.arange(r0, r1)[:, None]).astype(np.float32)
+            for u in range(u0, u1 + 1):
+                votes.append((c, rng.choice([3, 3, 3, 4]), u if rng.random() > 0.1 else -1 - (r1 - 1), r1 - 1,
+                              rng.random() > 0.1))
+        vc, vk, vl, vv, good = (np.array(x) for x in zip(*votes))
+        vc, vk, vl, vv = (a.astype(np.int64) for a in (vc, vk, vl, vv))
+        good = good.astype(bool)
+        comps = np.array([0, 1, 3], np.int64)
+        slot = np.full(4, -1, np.int64)
+        slot[comps] = np.arange(3)
+        offset = np.array([3, 3, 3], np.int64)
+        got = kernels.gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot, offset, rows,
+                                             0.1, 10.0, 5, 0.005)
+        diff = kernels.stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows)
+        for i, c in enumerate(comps):
+            d = diff[(vc == c) & (vk == 3) & good & (vl >= 0)]
+            d = d[np.isfinite(d)]
+            want = False
+            if d.size >= 5:
+                med = np.median(d)
+                se = 1.4826 * max(np.median(np.abs(d - med)), 0.005) / np.sqrt(d.size)
+                want = abs(med) > 0.1 and abs(med) > 10.0 * se
+            assert got[i] == want, (trial, c, d.size)
+            verdicts.append((bool(want), d.size >= 5))
+    assert {(True, True), (False, True), (False, False)} <= set(verdicts)   # flagged, passed, too few votes
+
+
+def test_component_markers_seen_kernel_counts_marker_stripes_with_enough_pixels():
+    """kernels.component_markers_seen against numpy on random components, labels and shifts."""
+    from gbscan import kernels
+
+    rng = np.random.default_rng(3)
+    spec = PatternSpec()
+    is_marker = spec.is_marker()
+    H, W, n_comp = 30, 50, 6
+    comp = rng.integers(-1, n_comp, (H, W)).astype(np.int32)
+    rel = rng.integers(-5, 20, (H, W)).astype(np.int32)
+    labels = rng.integers(0, 4, (H, W)).astype(np.uint8)
+    shift = rng.integers(0, 40, n_comp).astype(np.int64)
+    slot = np.array([0, -1, 1, 2, -1, 3], np.int64)
+    for min_px in (1, 3, 6):
+        got = kernels.component_markers_seen(comp, rel, labels, shift, slot, 4, is_marker, min_px)
+        want = np.zeros(4, np.int64)
+        for c in range(n_comp):
+            if slot[c] < 0:
+                continue
+            m = (comp == c) & (labels == 3)
+            st = rel[m] + shift[c]
+            st = st[(st >= 0) & (st < is_marker.size)]
+            vals, cnt = np.unique(st[is_marker[st]], return_counts=True)
+            want[slot[c]] = int((cnt >= min_px).sum())
+        np.testing.assert_array_equal(got, want)
+        assert want.sum() > 0
+
+
 def test_link_params_are_validated():
     with pytest.raises(GBError, match="link_tol_px"):
         uw.UnwrapParams(link_tol_px=5.0)
     with pytest.raises(GBError, match="link_votes"):
         uw.UnwrapParams(link_votes=-1)
+    for bad in ({"link_grad_tol": -0.1}, {"link_grad_z": -1.0}, {"link_grad_rows": 1}):
+        with pytest.raises(GBError, match="link_grad"):
+            uw.UnwrapParams(**bad)
 
 
 def test_component_pixels_over_spans_equals_the_image_pass():

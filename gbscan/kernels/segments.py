@@ -1312,6 +1312,147 @@ def component_marker_counts(comp, relative, labels, comp_shift, take, is_marker)
 
 
 @njit(cache=True, nogil=True)
+def _gradient_step(comp, col_rel, col_abs, c, u, v, rows):
+    # d column / d v in the component minus in the reported pixels at the vote (v, u) of component
+    # c (see stripe_gradient_jumps); NaN where either side has fewer than 3 rows
+    H = comp.shape[0]
+    d = 1
+    if v >= 2 and not np.isnan(col_abs[v - 1, u]) and not np.isnan(col_abs[v - 2, u]):
+        d = -1
+    g0 = 0.0
+    for side in range(2):
+        sx = 0.0
+        sy = 0.0
+        sxx = 0.0
+        sxy = 0.0
+        m = 0
+        for j in range(rows + 1):
+            q = v - d * j if side == 0 else v + d * (j + 1)
+            if q < 0 or q >= H:
+                break
+            if side == 0:
+                if comp[q, u] != c:
+                    break
+                y = col_rel[q, u]
+            else:
+                y = col_abs[q, u]
+            if np.isnan(y):
+                break
+            x = float(q)
+            sx += x
+            sy += y
+            sxx += x * x
+            sxy += x * y
+            m += 1
+        if m < 3:
+            return np.nan
+        g = (m * sxy - sx * sy) / (m * sxx - sx * sx)
+        if side == 0:
+            g0 = g
+        else:
+            return g0 - g
+    return np.nan
+
+
+@njit(cache=True, nogil=True)
+def stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows):
+    """Per vertical link vote: how the column's gradient along the stripes changes at the contact.
+
+    ``vc, vl, vv`` (n,) a component's votes as :func:`link_votes` returns them (component, line:
+    the column for a vertical vote, row of the candidate pixel); only vertical votes of
+    components with ``slot[c] >= 0`` are measured.  The reported pixels the vote came from lie
+    above the candidate when its two pixels above are reported (``col_abs`` finite), else below.
+    The gradient ``d column / d v`` (projector px per camera row, least squares) is taken over
+    the candidate's column from the contact row into the component (``comp == c``, ``col_rel``
+    finite, up to ``rows + 1`` rows, contiguous) and from the first reported row beyond the
+    contact into the reported pixels (``col_abs`` finite, up to ``rows + 1`` rows).  Returns
+    (n,) float64 component minus reported gradient, NaN where either side has fewer than 3 rows.
+    """
+    n = vc.shape[0]
+    out = np.full(n, np.nan)
+    for i in range(n):
+        if vl[i] >= 0 and slot[vc[i]] >= 0:
+            out[i] = _gradient_step(comp, col_rel, col_abs, vc[i], vl[i], vv[i], rows)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot, offset, rows, tol, z, min_votes,
+                           floor):
+    """Per slot: does the column's gradient along the stripes jump where the component meets the
+    reported pixels?  The agreeing (``good``) vertical votes of each component ``c`` with
+    ``slot[c] >= 0`` at its offset ``offset[slot[c]]`` (``vk``, periods of two stripes) are
+    measured as :func:`stripe_gradient_jumps` does; with at least ``min_votes`` measured, the
+    median difference ``m`` flags the component when ``|m| > tol`` and ``|m| > z * se``,
+    ``se = 1.4826 * max(MAD, floor) / sqrt(n)``.  Returns (n_slot,) bool."""
+    n_slot = offset.shape[0]
+    n = vc.shape[0]
+    diff = np.full(n, np.nan)
+    cnt = np.zeros(n_slot + 1, np.int64)
+    for i in range(n):
+        c = vc[i]
+        if not good[i] or vl[i] < 0:
+            continue
+        k = slot[c]
+        if k < 0 or vk[i] != offset[k]:
+            continue
+        g = _gradient_step(comp, col_rel, col_abs, c, vl[i], vv[i], rows)
+        if not np.isnan(g):
+            diff[i] = g
+            cnt[k + 1] += 1
+    for k in range(n_slot):
+        cnt[k + 1] += cnt[k]
+    vals = np.empty(cnt[n_slot])
+    fill = cnt[:n_slot].copy()
+    for i in range(n):
+        if not np.isnan(diff[i]):
+            k = slot[vc[i]]
+            vals[fill[k]] = diff[i]
+            fill[k] += 1
+    out = np.zeros(n_slot, np.bool_)
+    for k in range(n_slot):
+        m = cnt[k + 1] - cnt[k]
+        if m < min_votes:
+            continue
+        d = vals[cnt[k]:cnt[k + 1]]
+        med = np.median(d)
+        mad = np.median(np.abs(d - med))
+        se = 1.4826 * max(mad, floor) / np.sqrt(m)
+        out[k] = abs(med) > tol and abs(med) > z * se
+    return out
+
+
+@njit(cache=True, nogil=True)
+def component_markers_seen(comp, relative, labels, comp_shift, slot, n_slot, is_marker, min_px):
+    """Per slot: the marker stripes a component shows at its linked offset.
+
+    ``slot`` (n_comp,) int64 maps a component to its slot (-1: not counted); a pixel of component
+    ``c`` counts for stripe ``relative + comp_shift[c]`` when it is cyan and that stripe is a
+    marker.  Returns (n_slot,) int64: per slot the marker stripes with at least ``min_px`` such
+    pixels (the indexing's ``min_marker_px``)."""
+    H, W = comp.shape
+    n_st = is_marker.shape[0]
+    cnt = np.zeros((max(n_slot, 1), n_st), np.int64)
+    for v in range(H):
+        for u in range(W):
+            c = comp[v, u]
+            if c < 0 or labels[v, u] != CYAN:
+                continue
+            k = slot[c]
+            if k < 0:
+                continue
+            st = relative[v, u] + comp_shift[c]
+            if 0 <= st < n_st and is_marker[st]:
+                cnt[k, st] += 1
+    out = np.zeros(n_slot, np.int64)
+    for k in range(n_slot):
+        for st in range(n_st):
+            if cnt[k, st] >= min_px:
+                out[k] += 1
+    return out
+
+
+@njit(cache=True, nogil=True)
 def _run_key(labels, seg, rel, v, vn, a, b):
     # majority (segment, offset) key of the pixels a..b of row v against row vn (-1: no vote)
     best = np.int64(-1)
