@@ -228,14 +228,17 @@ class UnwrapParams:
         well; the column's gradient along the stripes (``d column / d v``, over
         ``link_grad_rows`` rows each side of the contact) then still changes with the surface's
         tilt.  The component is not linked when the median change exceeds ``link_grad_tol`` px
-        per row with a z-score over ``link_grad_z`` (``link_grad_tol=0`` disables).  The
+        per row with a z-score over ``link_grad_z`` (``link_grad_tol=0`` disables), unless its
+        contacts above and below differ with opposite signs (a steady change: one curved surface;
+        :func:`_gradient_jumps`).  The
         multi-object scene's tilted panel at 140-160 mm baselines (its gradient -0.17 px per row,
         the wall's 0.00; ``scripts/sweep_decode.py --set baselines``, seeds 0-2): wrong non-edge
         pixels 1994 -> 1179 (140 mm: 483 -> 24; the rest is a strip of the panel welded along its
         rows into the wall's region).  The 48-scene sweep, the room-light frames and the blur grid
         are unchanged; the clean preset loses one correct component of a head (0.12 px per row at
-        z 14: 82.12 -> 81.87 % reported).  The real face's hanging components reach 0.11-0.26 px
-        per row at z 5-8 (its relief): z 5 would cost it 1.0-1.4 points.
+        z 14: 82.12 -> 81.87 % reported), the real face in ``scripts/coverage_study.py`` one under
+        a crease on two of three seeds (0.2 points).  The real face's hanging components reach
+        0.11-0.26 px per row at z 5-8 (its relief): z 5 would cost it 1.0-1.4 points.
     retry_spacing_ratio, retry_min_px : a region of at least ``retry_min_px`` pixels whose
         markers do not fit the pattern or leave its offset ambiguous is often two surfaces welded
         along a silhouette where the boundary spacing jumps by less than ``spacing_ratio`` (the
@@ -1325,10 +1328,12 @@ def _gradient_jumps(vc, vk, vl, vv, good, comp, col_rel, col_abs, comps, offsets
     The agreeing vertical votes of each component at its offset (``vc, vk, vl, vv, good`` of
     :func:`link_components`) are measured as :func:`gbscan.kernels.stripe_gradient_jumps` does
     (``link_grad_rows`` rows each side; one compiled pass, :func:`gbscan.kernels.
-    gradient_jump_verdicts`); with at least ``_GRAD_MIN_VOTES`` measured, the median
-    difference must not exceed ``link_grad_tol`` px per row in size while exceeding
+    gradient_jump_verdicts`).  With at least ``_GRAD_MIN_VOTES`` measured votes, a component is
+    flagged when their median difference exceeds ``link_grad_tol`` px per row in size and
     ``link_grad_z`` standard errors (``1.4826 * MAD / sqrt(n)``, the MAD at least
-    ``_GRAD_NOISE_FLOOR``).  Without enough measured votes a component is not flagged.
+    ``_GRAD_NOISE_FLOOR``), unless its contacts above and below, taken apart, have medians of
+    opposite signs each at that z-score (the gradient changing steadily through it: one curved
+    surface, as found on the real face).
     """
     from . import kernels
 

@@ -406,7 +406,8 @@ def test_stripe_gradient_jumps_kernel_equals_least_squares():
     vl = np.array([3, 7, 12, 15, 5, -1 - 19], np.int64)    # the last: a vote along a row (not measured)
     vv = np.array([19, 19, 25, 25, 3, 19], np.int64)
     slot = np.array([0, 1, 2], np.int64)
-    got = kernels.stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows)
+    got, where = kernels.stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows)
+    np.testing.assert_array_equal(where, [1, 1, 0, 0, -1, -1])   # below, below, above, above, not measured
 
     def ls(y, x):
         return np.polyfit(x.astype(float), y.astype(float), 1)[0]
@@ -429,56 +430,65 @@ def test_stripe_gradient_jumps_kernel_equals_least_squares():
     # the components' gradient (0.3 px per row) against the reported rows' (-0.1), below and above
     assert got[0] == pytest.approx(0.4, abs=0.05) and got[2] == pytest.approx(0.4, abs=0.05)
     # a component not listed (slot -1) is not measured
-    assert np.isnan(kernels.stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, np.array([-1, 1, 2]), rows)[0])
+    assert np.isnan(kernels.stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, np.array([-1, 1, 2]), rows)[0][0])
 
 
 def test_gradient_jump_verdicts_equal_the_median_test_over_the_measured_votes():
     """kernels.gradient_jump_verdicts (link_components' one pass) against the votes measured by
     kernels.stripe_gradient_jumps and the median / MAD test written in numpy: random components
-    hanging from reported rows at random gradients, votes at other offsets or not agreeing left
-    out, components with too few measured votes never flagged."""
+    between reported bands of random gradients, voted from below and sometimes from above; votes
+    at another offset, not agreeing or along a row left out; too few measured votes never
+    flagged; a component whose two contacts, apart, differ with opposite signs (the gradient
+    changing steadily through it: one curved surface) not flagged."""
     from gbscan import kernels
 
     rng = np.random.default_rng(11)
-    H, W, rows = 80, 60, 6
+    H, W, rows, tol, z = 100, 60, 6, 0.1, 10.0
     verdicts = []
-    for trial in range(20):
+    for trial in range(40):
+        inc = np.repeat(rng.choice([-0.2, 0.0, 0.1, 0.25], 10), 10)          # a gradient per band of 10 rows
+        col_abs = (np.concatenate([[0.0], np.cumsum(inc)[:-1]])[:, None] + rng.normal(0, 0.02, (H, W))).astype(np.float32)
         comp = np.full((H, W), -1, np.int32)
         col_rel = np.full((H, W), np.nan, np.float32)
-        col_abs = (rng.normal(0, 0.03, (H, W)) + rng.normal(0, 0.05) * np.arange(H)[:, None]).astype(np.float32)
         votes = []
-        for c in range(4):            # component c: rows 10c+2 .. 10c+9 over random columns, votes at its last row
-            r0, r1 = 20 * c + 2, 20 * c + 10
+        for c in range(4):            # component c: rows 25c+8 .. 25c+16 over random columns
+            r0, r1 = 25 * c + 8, 25 * c + 17
             u0, u1 = sorted(rng.integers(0, W, 2))
             comp[r0:r1, u0:u1 + 1] = c
             col_abs[r0:r1, u0:u1 + 1] = np.nan
             g = rng.choice([0.0, 0.05, 0.2, -0.3])
             col_rel[r0:r1, u0:u1 + 1] = (rng.normal(0, rng.choice([0.005, 0.05]), (r1 - r0, u1 - u0 + 1))
                                          + g * np.arange(r0, r1)[:, None]).astype(np.float32)
+            above = rng.random() < 0.6
             for u in range(u0, u1 + 1):
-                votes.append((c, rng.choice([3, 3, 3, 4]), u if rng.random() > 0.1 else -1 - (r1 - 1), r1 - 1,
-                              rng.random() > 0.1))
+                for v in ((r0, r1 - 1) if above else (r1 - 1,)):
+                    votes.append((c, rng.choice([3, 3, 3, 4]), u if rng.random() > 0.1 else -1 - v, v,
+                                  rng.random() > 0.1))
         vc, vk, vl, vv, good = (np.array(x) for x in zip(*votes))
         vc, vk, vl, vv = (a.astype(np.int64) for a in (vc, vk, vl, vv))
         good = good.astype(bool)
         comps = np.array([0, 1, 3], np.int64)
         slot = np.full(4, -1, np.int64)
         slot[comps] = np.arange(3)
-        offset = np.array([3, 3, 3], np.int64)
-        got = kernels.gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot, offset, rows,
-                                             0.1, 10.0, 5, 0.005)
-        diff = kernels.stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows)
+        got = kernels.gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot,
+                                             np.array([3, 3, 3], np.int64), rows, tol, z, 5, 0.005)
+        diff, where = kernels.stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows)
+        def test(d):
+            med = np.median(d)
+            zz = abs(med) / (1.4826 * max(np.median(np.abs(d - med)), 0.005) / np.sqrt(d.size))
+            return abs(med) > tol and zz > z, med, zz
+
         for i, c in enumerate(comps):
-            d = diff[(vc == c) & (vk == 3) & good & (vl >= 0)]
-            d = d[np.isfinite(d)]
-            want = False
-            if d.size >= 5:
-                med = np.median(d)
-                se = 1.4826 * max(np.median(np.abs(d - med)), 0.005) / np.sqrt(d.size)
-                want = abs(med) > 0.1 and abs(med) > 10.0 * se
-            assert got[i] == want, (trial, c, d.size)
-            verdicts.append((bool(want), d.size >= 5))
-    assert {(True, True), (False, True), (False, False)} <= set(verdicts)   # flagged, passed, too few votes
+            mine = (vc == c) & (vk == 3) & good & (vl >= 0) & np.isfinite(diff)
+            sides = [test(diff[mine & (where == w)]) for w in (0, 1) if (mine & (where == w)).sum() >= 5]
+            steady = len(sides) == 2 and all(t[2] > z for t in sides) and sides[0][1] * sides[1][1] < 0
+            jump = mine.sum() >= 5 and test(diff[mine])[0]
+            want = jump and not steady
+            assert got[i] == want, (trial, c, jump, sides)
+            verdicts.append((bool(want), len(sides), bool(jump and steady)))
+    kinds = set(verdicts)
+    assert {(True, 1, False), (False, 1, False), (False, 0, False)} <= kinds            # one contact
+    assert (True, 2, False) in kinds and (False, 2, True) in kinds      # two: a jump; a steady change spared
 
 
 def test_component_markers_seen_kernel_counts_marker_stripes_with_enough_pixels():

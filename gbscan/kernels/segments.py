@@ -1313,12 +1313,14 @@ def component_marker_counts(comp, relative, labels, comp_shift, take, is_marker)
 
 @njit(cache=True, nogil=True)
 def _gradient_step(comp, col_rel, col_abs, c, u, v, rows):
-    # d column / d v in the component minus in the reported pixels at the vote (v, u) of component
-    # c (see stripe_gradient_jumps); NaN where either side has fewer than 3 rows
+    # (d column / d v in the component minus in the reported pixels at the vote (v, u) of
+    # component c, the side of the reported pixels: 0 above, 1 below); see stripe_gradient_jumps.
+    # The difference is NaN where either side has fewer than 3 rows
     H = comp.shape[0]
     d = 1
     if v >= 2 and not np.isnan(col_abs[v - 1, u]) and not np.isnan(col_abs[v - 2, u]):
         d = -1
+    where = 0 if d < 0 else 1
     g0 = 0.0
     for side in range(2):
         sx = 0.0
@@ -1345,13 +1347,13 @@ def _gradient_step(comp, col_rel, col_abs, c, u, v, rows):
             sxy += x * y
             m += 1
         if m < 3:
-            return np.nan
+            return np.nan, where
         g = (m * sxy - sx * sy) / (m * sxx - sx * sx)
         if side == 0:
             g0 = g
         else:
-            return g0 - g
-    return np.nan
+            return g0 - g, where
+    return np.nan, where
 
 
 @njit(cache=True, nogil=True)
@@ -1366,14 +1368,29 @@ def stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows):
     the candidate's column from the contact row into the component (``comp == c``, ``col_rel``
     finite, up to ``rows + 1`` rows, contiguous) and from the first reported row beyond the
     contact into the reported pixels (``col_abs`` finite, up to ``rows + 1`` rows).  Returns
-    (n,) float64 component minus reported gradient, NaN where either side has fewer than 3 rows.
+    (n,) float64 component minus reported gradient, NaN where either side has fewer than 3 rows,
+    and (n,) int8 the side of the reported pixels (0 above, 1 below; -1 not measured).
     """
     n = vc.shape[0]
     out = np.full(n, np.nan)
+    where = np.full(n, -1, np.int8)
     for i in range(n):
         if vl[i] >= 0 and slot[vc[i]] >= 0:
-            out[i] = _gradient_step(comp, col_rel, col_abs, vc[i], vl[i], vv[i], rows)
-    return out
+            g, w = _gradient_step(comp, col_rel, col_abs, vc[i], vl[i], vv[i], rows)
+            out[i] = g
+            if not np.isnan(g):
+                where[i] = w
+    return out, where
+
+
+@njit(cache=True, nogil=True)
+def _median_test(d, tol, z, floor):
+    # (|median| > tol and > z standard errors, the median, its z-score) of the differences d
+    med = np.median(d)
+    mad = np.median(np.abs(d - med))
+    se = 1.4826 * max(mad, floor) / np.sqrt(d.shape[0])
+    zz = abs(med) / se
+    return abs(med) > tol and zz > z, med, zz
 
 
 @njit(cache=True, nogil=True)
@@ -1382,13 +1399,18 @@ def gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot, o
     """Per slot: does the column's gradient along the stripes jump where the component meets the
     reported pixels?  The agreeing (``good``) vertical votes of each component ``c`` with
     ``slot[c] >= 0`` at its offset ``offset[slot[c]]`` (``vk``, periods of two stripes) are
-    measured as :func:`stripe_gradient_jumps` does; with at least ``min_votes`` measured, the
-    median difference ``m`` flags the component when ``|m| > tol`` and ``|m| > z * se``,
-    ``se = 1.4826 * max(MAD, floor) / sqrt(n)``.  Returns (n_slot,) bool."""
+    measured as :func:`stripe_gradient_jumps` does.  With at least ``min_votes`` measured, the
+    component is flagged when the median difference ``m`` of all of them has ``|m| > tol`` and
+    ``|m| > z * se``, ``se = 1.4826 * max(MAD, floor) / sqrt(n)`` -- unless its contacts above and
+    below (each with ``min_votes`` measured) have medians of opposite signs, each at a z-score
+    over ``z``: then the gradient grows (or falls) steadily from the surface above through the
+    component to the one below, the curvature of one surface, where a surface of another tilt
+    would differ from both the same way.  Returns (n_slot,) bool."""
     n_slot = offset.shape[0]
     n = vc.shape[0]
     diff = np.full(n, np.nan)
-    cnt = np.zeros(n_slot + 1, np.int64)
+    key = np.full(n, -1, np.int64)
+    cnt = np.zeros(2 * n_slot + 1, np.int64)
     for i in range(n):
         c = vc[i]
         if not good[i] or vl[i] < 0:
@@ -1396,29 +1418,34 @@ def gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot, o
         k = slot[c]
         if k < 0 or vk[i] != offset[k]:
             continue
-        g = _gradient_step(comp, col_rel, col_abs, c, vl[i], vv[i], rows)
+        g, w = _gradient_step(comp, col_rel, col_abs, c, vl[i], vv[i], rows)
         if not np.isnan(g):
             diff[i] = g
-            cnt[k + 1] += 1
-    for k in range(n_slot):
+            key[i] = 2 * k + w
+            cnt[key[i] + 1] += 1
+    for k in range(2 * n_slot):
         cnt[k + 1] += cnt[k]
-    vals = np.empty(cnt[n_slot])
-    fill = cnt[:n_slot].copy()
+    vals = np.empty(cnt[2 * n_slot])
+    fill = cnt[:2 * n_slot].copy()
     for i in range(n):
-        if not np.isnan(diff[i]):
-            k = slot[vc[i]]
-            vals[fill[k]] = diff[i]
-            fill[k] += 1
+        if key[i] >= 0:
+            vals[fill[key[i]]] = diff[i]
+            fill[key[i]] += 1
     out = np.zeros(n_slot, np.bool_)
     for k in range(n_slot):
-        m = cnt[k + 1] - cnt[k]
-        if m < min_votes:
+        a, b = cnt[2 * k], cnt[2 * k + 2]       # both contacts' votes (the buckets are adjacent)
+        if b - a < min_votes:
             continue
-        d = vals[cnt[k]:cnt[k + 1]]
-        med = np.median(d)
-        mad = np.median(np.abs(d - med))
-        se = 1.4826 * max(mad, floor) / np.sqrt(m)
-        out[k] = abs(med) > tol and abs(med) > z * se
+        jump, _, _ = _median_test(vals[a:b], tol, z, floor)
+        if not jump:
+            continue
+        med = np.zeros(2)
+        zz = np.zeros(2)
+        for w in range(2):
+            a, b = cnt[2 * k + w], cnt[2 * k + w + 1]
+            if b - a >= min_votes:
+                _, med[w], zz[w] = _median_test(vals[a:b], tol, z, floor)
+        out[k] = not (zz[0] > z and zz[1] > z and med[0] * med[1] < 0)
     return out
 
 
