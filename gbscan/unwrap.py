@@ -230,11 +230,10 @@ class UnwrapParams:
         tilt.  The component is not linked when the median change exceeds ``link_grad_tol`` px
         per row with a z-score over ``link_grad_z`` (``link_grad_tol=0`` disables), unless its
         contacts above and below differ with opposite signs (a steady change: one curved surface;
-        :func:`_gradient_jumps`).  The
-        multi-object scene's tilted panel at 140-160 mm baselines (its gradient -0.17 px per row,
-        the wall's 0.00; ``scripts/sweep_decode.py --set baselines``, seeds 0-2): wrong non-edge
-        pixels 1994 -> 1179 (140 mm: 483 -> 24; the rest is a strip of the panel welded along its
-        rows into the wall's region).  The 48-scene sweep, the room-light frames and the blur grid
+        :func:`_gradient_jumps`).  The multi-object scene's tilted panel at 140-160 mm baselines
+        (its gradient -0.17 px per row, the wall's 0.00; ``scripts/sweep_decode.py --set
+        baselines``, seeds 0-2): wrong non-edge pixels 1994 -> 1179 (140 mm: 483 -> 24; the rest
+        is a strip of the panel welded along its rows into the wall's region).  The 48-scene sweep, the room-light frames and the blur grid
         are unchanged; the clean preset loses one correct component of a head (0.12 px per row at
         z 14: 82.12 -> 81.87 % reported), the real face in ``scripts/coverage_study.py`` one under
         a crease on two of three seeds (0.2 points).  The real face's hanging components reach
