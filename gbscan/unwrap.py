@@ -1277,13 +1277,13 @@ def link_components(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, col_rel
                                            params)
         if refuse.any():
             # markers of its own fix the offset: such a component is linked whatever its gradient
+            # (``shift`` and ``is_marker`` are the marker check's above: it ran on a superset of
+            # these components, with the same offsets)
             slot = np.full(segs.n, -1, np.int64)
             slot[accept_c[refuse]] = np.arange(int(refuse.sum()))
-            shift = np.zeros(segs.n, np.int64)
-            shift[accept_c] = 2 * accept_k
             seen = kernels.component_markers_seen(comp, np.ascontiguousarray(un.relative, dtype=np.int32),
                                                   np.ascontiguousarray(labels, dtype=np.uint8), shift, slot,
-                                                  int(refuse.sum()), pattern.is_marker(), int(params.min_marker_px))
+                                                  int(refuse.sum()), is_marker, int(params.min_marker_px))
             refuse[refuse] = seen < params.min_markers
             stats["refused_gradient"] = int(refuse.sum())
             keep = ~refuse
