@@ -238,6 +238,27 @@ class UnwrapParams:
         z 14: 82.12 -> 81.87 % reported), the real face in ``scripts/coverage_study.py`` one under
         a crease on two of three seeds (0.2 points).  The real face's hanging components reach
         0.11-0.26 px per row at z 5-8 (its relief): z 5 would cost it 1.0-1.4 points.
+    tilt_step, tilt_z, tilt_rows, tilt_window, tilt_break_rows, tilt_break_min : step 1 also cuts a
+        row where it crosses the depth-edge line of the rows around it and the stripes' lean
+        steps there (:func:`gbscan.kernels.tilt_step_cuts`).  Two surfaces whose stripes line up
+        along a silhouette (an even number of stripes apart) and whose boundary spacings differ by
+        less than ``spacing_ratio`` and ``bridge_ratio`` weld in the rows that cross it unparted:
+        the tilted panel of the multi-object scene at 140-160 mm baselines (8 stripes off, the
+        panel's spacing 8 % wider than the wall's, one marker that fits both offsets) was welded
+        into the wall's region along 3-7 of its rows and pieces of it were linked through them.
+        The stripes' lean differs: each located boundary is followed ``tilt_rows`` rows up and
+        down (its tilt, ``d x / d v``, least squares: the panel 0.08-0.10 camera px per row, the
+        wall 0.00).  A junction with at least ``tilt_break_min`` of the ``2 * tilt_break_rows``
+        rows around it ending a segment within 3 px of its column (step 1 parted those rows at
+        the silhouette) is cut when the median tilts of the ``tilt_window`` junctions either
+        side of it differ by more than ``tilt_step`` px per row at a z-score over ``tilt_z``
+        (``tilt_step=0`` disables).  A face's creases step the tilt as much (0.07-0.36 px per row
+        at z 6-38) but are not crossed by such a line.  ``scripts/sweep_decode.py --set
+        baselines``: wrong non-edge pixels 1179 -> 24, on depth edges 230 -> 158 (reported 84.78
+        -> 84.77 %); the 48-scene sweep 84.03 -> 84.05 % (7 wrong, 90 -> 91 on depth edges; the
+        multi-object frames +0.1 points, two renders of the real face and two heads -0.03 to
+        -0.06).  Counting the rows the spacing and bridge cuts part (not only the segment
+        ends) fixed the supersample-1 renders too, but cost the real face up to 0.8 points.
     retry_spacing_ratio, retry_min_px : a region of at least ``retry_min_px`` pixels whose
         markers do not fit the pattern or leave its offset ambiguous is often two surfaces welded
         along a silhouette where the boundary spacing jumps by less than ``spacing_ratio`` (the
@@ -301,6 +322,12 @@ class UnwrapParams:
     link_grad_tol: float = 0.1
     link_grad_z: float = 10.0
     link_grad_rows: int = 6
+    tilt_step: float = 0.03
+    tilt_z: float = 6.0
+    tilt_rows: int = 6
+    tilt_window: int = 4
+    tilt_break_rows: int = 10
+    tilt_break_min: int = 10
     volume_frac: float = 0.5
     retry_spacing_ratio: float = 1.2
     retry_min_px: int = 1000
@@ -323,6 +350,13 @@ class UnwrapParams:
                           f"{self.index_margin_events}")
         if int(self.link_hang_rows) < 0:
             raise GBError(f"UnwrapParams.link_hang_rows must be >= 0 (0 disables), got {self.link_hang_rows}")
+        if not float(self.tilt_step) >= 0 or not float(self.tilt_z) >= 0 or int(self.tilt_rows) < 2 \
+                or int(self.tilt_window) < _TILT_MIN_SIDE or int(self.tilt_break_rows) < 1 \
+                or not 0 <= int(self.tilt_break_min) <= 2 * int(self.tilt_break_rows):
+            raise GBError(f"UnwrapParams.tilt_step and tilt_z must be >= 0 (tilt_step 0 disables), tilt_rows >= 2, "
+                          f"tilt_window >= {_TILT_MIN_SIDE}, tilt_break_rows >= 1 and tilt_break_min in 0 .. "
+                          f"2 * tilt_break_rows, got {self.tilt_step}, {self.tilt_z}, {self.tilt_rows}, "
+                          f"{self.tilt_window}, {self.tilt_break_rows}, {self.tilt_break_min}")
         if not float(self.link_grad_tol) >= 0 or not float(self.link_grad_z) >= 0 or int(self.link_grad_rows) < 2:
             raise GBError(f"UnwrapParams.link_grad_tol and link_grad_z must be >= 0 (link_grad_tol 0 disables) and "
                           f"link_grad_rows >= 2, got {self.link_grad_tol}, {self.link_grad_z}, {self.link_grad_rows}")
@@ -650,6 +684,29 @@ def _unlocated_cut_mask(segs: Segments, ratio: float, pre=None):
     return cut if cut.any() else None
 
 
+def _tilt_cut_mask(segs: Segments, shape, p: "UnwrapParams"):
+    """(n_junctions,) uint8 junctions where a row crosses the depth-edge line of the rows around
+    it and the boundaries' tilt steps there (``p.tilt_step``, :func:`gbscan.kernels.tilt_step_cuts`),
+    None when it cuts none."""
+    from . import kernels
+
+    H, W = shape
+    if segs.j_x is None or p.tilt_step <= 0 or segs.j_seg.size == 0:
+        return None
+    cut = kernels.tilt_step_cuts(segs.j_x, segs.j_seg, segs.row, segs.u0, segs.u1, segs.j0,
+                                 segs.j1, segs.j_ua, segs.j_la, segs.j_lb, int(H), int(W), int(p.tilt_rows),
+                                 _TILT_TRACK_PX, int(p.tilt_break_rows), _TILT_BREAK_PX, int(p.tilt_break_min),
+                                 int(p.tilt_window), _TILT_MIN_SIDE, float(p.tilt_step), float(p.tilt_z),
+                                 _TILT_NOISE_FLOOR)
+    return cut if cut.any() else None
+
+
+_TILT_TRACK_PX = 1.0     # a boundary is followed to the next row's nearest one within this (camera px)
+_TILT_BREAK_PX = 3       # a segment end this close (camera px) to a junction's column counts as a break there
+_TILT_MIN_SIDE = 3       # finite tilts each side of a junction the tilt-step test needs
+_TILT_NOISE_FLOOR = 0.01  # smallest spread (px per row) assumed of a side's boundary tilts
+
+
 def attach_doubtful(segs: Segments, edges: Edges, believable: np.ndarray, state, p: UnwrapParams, *, strong=None,
                     order=None):
     """Step 6, *unroll every row by relation with the upper neighbour* (and the lower one).
@@ -721,8 +778,8 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
         unroll_rows(labels, p.max_gap_px, p.spike_px, p.marker_flank_px, p.marker_end_flank)      # 1
     if locate is not None:
         segs1.j_x = np.asarray(locate(segs1), dtype=np.float32)
-        # cut_depth_edges, then cut_unlocated on its pieces: both masks, one split (_apply_cuts
-        # copies every table: ~1 ms a frame)
+        # cut_depth_edges, then cut_unlocated on its pieces, and the tilt steps at the depth-edge
+        # lines of the rows around: the masks, one split (_apply_cuts copies every table: ~1 ms a frame)
         c_depth = _spacing_cut_mask(segs1, p.spacing_ratio)
         if retry_px is not None and p.retry_spacing_ratio > 0:
             c_weak = _spacing_cut_mask(segs1, p.retry_spacing_ratio)
@@ -731,13 +788,17 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
                 c_depth = c_weak if c_depth is None else (c_depth | c_weak)
                 c_depth = c_depth if c_depth.any() else None
         c_unloc = _unlocated_cut_mask(segs1, p.bridge_ratio, c_depth)
+        c_tilt = _tilt_cut_mask(segs1, labels.shape, p)
         n_depth_cuts = int(c_depth.sum()) if c_depth is not None else 0
         n_unlocated_cuts = int(c_unloc.sum()) if c_unloc is not None else 0
+        n_tilt_cuts = int(c_tilt.sum()) if c_tilt is not None else 0
+        if c_tilt is not None:
+            c_depth = c_tilt if c_depth is None else (c_depth | c_tilt)
         if c_depth is not None or c_unloc is not None:
             cut = c_depth if c_unloc is None else (c_unloc if c_depth is None else c_depth | c_unloc)
             segs1 = _apply_cuts(segs1, cut)
     else:
-        n_depth_cuts = n_unlocated_cuts = 0
+        n_depth_cuts = n_unlocated_cuts = n_tilt_cuts = 0
     if sever_px is not None:
         sever_px = np.asarray(sever_px, bool)
         if sever_px.shape != labels.shape:
@@ -781,6 +842,7 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
         "segments": segs1.n,
         "depth_edge_cuts": int(n_depth_cuts),
         "unlocated_cuts": int(n_unlocated_cuts),
+        "tilt_cuts": int(n_tilt_cuts),
         "segments_believable": int(bel1.sum()),
         "pieces_after_split": segs.n,
         "regions_found": int(found.sum()),

@@ -1696,7 +1696,9 @@ def test_strip_welded_at_a_silhouette_is_cut_by_its_clean_marker_disagreement(fr
     r = _moving_frame(650.0 + 5.0 * frame, frame, wall_mm=wall_mm)
     unguarded = dict(SIGMA2, rim_guard_px=0, rim_end_rows=0, rim_lit_rows=0)
     sm = decode(r.image, PatternSpec(), DecodeParams(**unguarded))
-    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(conflict_clean_level=0.0), **unguarded))
+    # (the tilt-step cut parts much of frame 5's strip as well: off in the counterfactual)
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(conflict_clean_level=0.0, tilt_step=0.0),
+                                                      **unguarded))
     assert _wrong_off_edges(decode(r.image, PatternSpec()), r, widen_px) == 0  # the defaults
     assert _wrong_off_edges(sm, r, widen_px) == 0
     assert _wrong_off_edges(sm0, r, widen_px) > 150  # the weld is there without the rule
@@ -1743,14 +1745,15 @@ def test_rows_of_a_linked_region_are_checked_against_its_markers(frame, monkeypa
     its own markers, so the regular check of the marker-indexed regions drops the sphere's rows:
     the linked-region check is tested with the fixed margin alone; and without the retry of
     regions whose markers do not fit, ``UnwrapParams.retry_spacing_ratio``, which parts the two
-    surfaces before any linking on both frames.)"""
+    surfaces before any linking on both frames; and without the tilt-step cut, ``tilt_step``,
+    which parts them at the silhouette before any linking too.)"""
     import gbscan.unwrap as uw
 
     r = _moving_frame(650.0 + 5.0 * frame, frame)
     assert _wrong_off_edges(decode(r.image, PatternSpec()), r) == 0  # the defaults
     unguarded = DecodeParams(**dict(SIGMA2, rim_guard_px=0, rim_end_rows=0, rim_lit_rows=0),
                              unwrap=uw.UnwrapParams(bridge_ratio=0.0, index_margin_events=0.0,
-                                                    retry_spacing_ratio=0.0))
+                                                    retry_spacing_ratio=0.0, tilt_step=0.0))
     sm = decode(r.image, PatternSpec(), unguarded)
     assert sm.stats["regions_linked"] >= 1
     orig = uw.marker_conflicts
@@ -1988,7 +1991,7 @@ def test_weld_across_an_unlocated_boundary_is_cut(scene, sigma_px, wrong_without
     pixels as well; the counterfactual runs without the retry of misfit regions too,
     ``retry_spacing_ratio``, which cuts the 760 mm weld as well, and without the confirmed
     marker bound of the row check, ``conflict_confirm``, which rejects the 760 mm weld's rows
-    too.)"""
+    too, and without the tilt-step cut, ``tilt_step``, which parts frame 5's weld as well.)"""
     import dataclasses
 
     from gbscan.unwrap import UnwrapParams
@@ -2002,7 +2005,7 @@ def test_weld_across_an_unlocated_boundary_is_cut(scene, sigma_px, wrong_without
     sm = decode(r.image, PatternSpec(), DecodeParams(**found))
     sm0 = decode(r.image, PatternSpec(), DecodeParams(**found,
                                                       unwrap=UnwrapParams(bridge_ratio=0.0, retry_spacing_ratio=0.0,
-                                                                          conflict_confirm=False)))
+                                                                          conflict_confirm=False, tilt_step=0.0)))
     assert _wrong_off_edges(decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px)), r) == 0
     assert _wrong_off_edges(sm0, r) > wrong_without  # the weld is there without the rule
     assert _wrong_off_edges(sm, r) == 0
@@ -2132,7 +2135,9 @@ def test_panel_hanging_at_a_lined_up_contact_with_another_tilt_is_not_linked():
     gradient test of ``unwrap.link_components`` refuses it (414 -> 228 wrong non-edge pixels;
     nearly every pixel it drops was wrong).  The 228 left are a strip of the panel's top rows
     welded along its rows into the wall's region and a piece linked through that strip, whose
-    gradient continues (docs/method.md, Known limits)."""
+    gradient continues; the tilt-step cut parts that strip on supersampled renders, here it
+    leaves 198, see the next test).  The tilt-step cut is off in both decodes: this pins the
+    gradient test alone."""
     import dataclasses
 
     from gbscan.unwrap import UnwrapParams
@@ -2140,8 +2145,8 @@ def test_panel_hanging_at_a_lined_up_contact_with_another_tilt_is_not_linked():
     cond = dataclasses.replace(sim.preset("typical"), supersample=1)
     r = sim.render(sim.paper_rig(baseline_mm=150.0), sim.scenes.multi_object(650.0), render_pattern(PatternSpec()),
                    cond, seed=0)
-    sm = decode(r.image, PatternSpec())
-    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(link_grad_tol=0.0)))
+    sm = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(tilt_step=0.0)))
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(link_grad_tol=0.0, tilt_step=0.0)))
     wrong, wrong0 = _wrong_off_edges(sm, r), _wrong_off_edges(sm0, r)
     print(f"150 mm baseline, multi-object: wrong pixels off depth edges {wrong0} -> {wrong}")
     assert wrong0 > 350 and wrong < wrong0 - 150
@@ -2150,6 +2155,36 @@ def test_panel_hanging_at_a_lined_up_contact_with_another_tilt_is_not_linked():
     bad0 = np.abs(sm0.column - r.proj_xy[..., 0]) >= PatternSpec().stripe_px / 2
     assert lost.sum() > 150 and (lost & bad0).sum() >= 0.95 * lost.sum()   # only the wrong component goes
     assert not (sm.valid & ~sm0.valid).any()
+
+
+def test_panel_welded_along_its_rows_is_parted_by_the_tilt_step():
+    """Issue 3, other baselines: the multi-object scene with the projector 160 mm from the camera
+    (seed 1, supersample 1).  The tilted panel's stripes line up with the wall's along its side
+    silhouette, 8 stripes apart, with spacings 8 % apart: the rows that cross the silhouette
+    unparted welded the panel into the wall's region and pieces of it were linked through them
+    (526 wrong non-edge pixels).  Its stripes lean 0.08-0.10 camera px per row, the wall's not;
+    ``UnwrapParams.tilt_step`` cuts those rows where the rows around were parted: 38 left, and
+    the pixels it no longer reports were nearly all wrong (none moved to another stripe)."""
+    import dataclasses
+
+    from gbscan.unwrap import UnwrapParams
+
+    cond = dataclasses.replace(sim.preset("typical"), supersample=1)
+    r = sim.render(sim.paper_rig(baseline_mm=160.0), sim.scenes.multi_object(650.0), render_pattern(PatternSpec()),
+                   cond, seed=1)
+    sm = decode(r.image, PatternSpec())
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(tilt_step=0.0)))
+    wrong, wrong0 = _wrong_off_edges(sm, r), _wrong_off_edges(sm0, r)
+    print(f"160 mm baseline, multi-object: wrong pixels off depth edges {wrong0} -> {wrong}, "
+          f"tilt cuts {sm.stats['tilt_cuts']}")
+    assert wrong0 > 400 and wrong < 60
+    assert sm.stats["tilt_cuts"] > 0 and sm0.stats["tilt_cuts"] == 0
+    bad0 = np.abs(sm0.column - r.proj_xy[..., 0]) >= PatternSpec().stripe_px / 2
+    lost = sm0.valid & ~sm.valid
+    assert lost.sum() > 400 and (lost & bad0).sum() >= 0.9 * lost.sum()
+    assert (sm.valid & ~sm0.valid).sum() < 20
+    both = sm.valid & sm0.valid
+    assert np.abs(sm.column[both] - sm0.column[both]).max() < PatternSpec().stripe_px / 2
 
 
 def test_bayer_camera_depth_edge_runs_are_not_extrapolated():

@@ -1691,3 +1691,176 @@ def test_vertical_votes_int64_keys_equal_the_sorted_form():
             a = kernels.vertical_votes(lab, seg, rel, n_seg)
             b = kernels._vertical_votes_sorted(lab, seg, rel, n_seg)
             assert all(np.array_equal(x, y) for x, y in zip(a, b)) and a[0].size > 0
+
+
+# -- the tilt-step cut (two surfaces welded along a row where their stripes line up) -------------
+def _tilted_planes(tilt_left, tilt_right, weld_rows, seam=40, rows=60, width=88, period=8.0, noise=0.0, seed=0):
+    """Labels (rows, width) of green/blue stripes ``period`` px wide (boundaries every
+    ``period / 2`` px): left of column ``seam`` leaning ``tilt_left`` camera px per row, right of
+    it ``tilt_right`` (shifted so that the two meet in row 0 at a whole stripe: lined up).
+    The rows in ``weld_rows`` cross the seam; every other row has 3 unlabelled px there (a
+    silhouette the row was parted at).  Returns the labels and a ``j_x`` function giving each
+    junction its true boundary position (plus ``noise`` px, seeded) for step 1's segments."""
+    half = period / 2
+
+    def model(u, v):
+        return tilt_left * v if u < seam else tilt_right * v
+
+    lab = np.zeros((rows, width), np.uint8)
+    for v in range(rows):
+        for u in range(width):
+            k = int(np.floor((u - model(u, v)) / half))
+            lab[v, u] = G if k % 2 == 0 else B
+        if v not in weld_rows:
+            lab[v, seam - 1:seam + 2] = N
+
+    def jx(segs):
+        rng = np.random.default_rng(seed)
+        out = np.empty(segs.j_seg.size, np.float64)
+        for j in range(segs.j_seg.size):
+            v, a = int(segs.row[segs.j_seg[j]]), int(segs.j_ua[j])
+            off = model(a + 1, v)
+            out[j] = off + np.floor((a + 1 - off) / half) * half   # the boundary in (a, a + 1]
+        return out + noise * rng.standard_normal(out.size)
+    return lab, jx
+
+
+def _tilt_cuts(lab, jx, **kw):
+    from gbscan import kernels
+
+    p = dataclasses.replace(uw.UnwrapParams(), **kw)
+    segs = uw.unroll_rows(lab)
+    segs.j_x = jx(segs).astype(np.float32)
+    cut = uw._tilt_cut_mask(segs, lab.shape, p)
+    cut = np.zeros(segs.j_seg.size, np.uint8) if cut is None else cut
+    return segs, cut, kernels
+
+
+def test_junction_tilts_recover_the_stripes_lean():
+    """kernels.junction_tilts: each boundary followed up and down the rows; on exact positions the
+    least-squares slope is the stripes' lean on either side of the seam (0.1 and 0 px per row),
+    and the fit over the rows followed equals np.polyfit of the same track."""
+    lab, jx = _tilted_planes(0.1, 0.0, weld_rows=range(60))
+    segs = uw.unroll_rows(lab)
+    x = jx(segs)
+    from gbscan import kernels
+
+    t = kernels.junction_tilts(x, segs.j_seg, segs.row, segs.j_la, segs.j_lb, lab.shape[0], 6, 1.0, 5)
+    v = segs.row[segs.j_seg]
+    inner = (v >= 6) & (v < 54)
+    left = inner & (x < 30)
+    right = inner & (x > 50)
+    assert left.sum() > 300 and right.sum() > 300
+    np.testing.assert_allclose(t[left], 0.1, atol=1e-9)
+    np.testing.assert_allclose(t[right], 0.0, atol=1e-9)
+    # near the top rows fewer rows are followed (none above row 0): the same fit, fewer points
+    j = int(np.flatnonzero((v == 2) & (x > 8) & (x < 30))[0])
+    track = [(2, x[j])]
+    for vv in range(3, 9):
+        c = np.flatnonzero((v == vv) & (segs.j_la == segs.j_la[j]) & (segs.j_lb == segs.j_lb[j]))
+        k = c[np.argmin(np.abs(x[c] - track[-1][1]))]
+        track.append((vv, x[k]))
+    for vv in (1, 0):
+        c = np.flatnonzero((v == vv) & (segs.j_la == segs.j_la[j]) & (segs.j_lb == segs.j_lb[j]))
+        k = c[np.argmin(np.abs(x[c] - track[0][1]))]
+        track.insert(0, (vv, x[k]))
+    vv, xx = np.array(track).T
+    assert t[j] == pytest.approx(np.polyfit(vv, xx, 1)[0], abs=1e-12)
+
+
+def test_tilt_step_cuts_part_the_welded_rows_only():
+    """uw.UnwrapParams.tilt_step: two planes, the left leaning 0.1 px per row, the right 0, their
+    stripes lined up; rows 28-33 cross the seam (welded: one segment each), the others are parted
+    there.  Each welded row is cut at the seam and nowhere else.  The same rows are not cut when
+    both planes lean alike, when no row around is parted (one surface bending: a crease), or with
+    ``tilt_step=0``; fewer parted rows than ``tilt_break_min`` leave them too."""
+    weld = range(28, 34)
+    lab, jx = _tilted_planes(0.1, 0.0, weld, noise=0.02)
+    segs, cut, _ = _tilt_cuts(lab, jx)
+    v = segs.row[segs.j_seg]
+    xs = segs.j_ua.astype(float)
+    assert set(v[cut == 1]) == set(weld)
+    assert np.all(np.abs(xs[cut == 1] - 40) <= 5)
+    for rows in weld:
+        assert 1 <= cut[v == rows].sum() <= 3
+    assert _tilt_cuts(lab, jx, tilt_step=0.0)[1].sum() == 0
+    assert _tilt_cuts(lab, jx, tilt_break_min=17)[1].sum() == 0   # 15 parted rows around row 30
+    lab2, jx2 = _tilted_planes(0.1, 0.1, weld, noise=0.02)
+    assert _tilt_cuts(lab2, jx2)[1].sum() == 0
+    lab3, jx3 = _tilted_planes(0.1, 0.0, range(60), noise=0.02)
+    assert _tilt_cuts(lab3, jx3)[1].sum() == 0
+    # through unwrap: the welded rows' segments end at the seam, the stats count the cuts
+    un = uw.unwrap(lab, locate=lambda s: jx(s).astype(np.float32))
+    assert un.stats["tilt_cuts"] == int(cut.sum())
+    seam_rows = [r for r in weld if (un.segments.row == r).sum() >= 2]
+    assert seam_rows == list(weld)
+
+
+def test_tilt_step_equals_the_median_test():
+    """kernels._tilt_step against numpy medians and MADs: a step of 0.08 px per row between two
+    flat sides is cut, a steady ramp of the same total change (a curved surface) is not, nor a
+    step under ``step``, nor sides with fewer than 3 finite tilts."""
+    from gbscan import kernels
+
+    buf = np.empty(4)
+    rng = np.random.default_rng(3)
+
+    def ref(t, i, window=4, min_n=3, step=0.03, z=6.0, floor=0.01):
+        L, R = t[max(0, i - window):i], t[i + 1:i + 1 + window]
+        L, R = L[np.isfinite(L)], R[np.isfinite(R)]
+        if L.size < min_n or R.size < min_n:
+            return False
+        d = abs(np.median(R) - np.median(L))
+        mad = max(np.median(np.abs(L - np.median(L))), np.median(np.abs(R - np.median(R))))
+        return bool(d > step and d > z * max(1.4826 * mad, floor))
+
+    cases = {
+        "step": (np.r_[np.full(5, 0.08), 0.04, np.zeros(5)] + 0.002 * rng.standard_normal(11), True),
+        "ramp": (np.linspace(0.08, 0.0, 11), False),
+        "small": (np.r_[np.full(5, 0.02), 0.01, np.zeros(5)], False),
+        "few": (np.r_[np.full(5, 0.08), 0.04, np.zeros(2), np.full(3, np.nan)], False),
+    }
+    for name, (t, want) in cases.items():
+        got = kernels._tilt_step(t, 0, t.size, 5, 4, 3, 0.03, 6.0, 0.01, buf)
+        assert got == ref(t, 5) == want, name
+    for _ in range(300):
+        t = np.where(rng.random(11) < 0.15, np.nan, rng.normal(0, 0.05, 11) + np.r_[np.zeros(5), 0, np.full(5, 0.1)]
+                     * rng.integers(0, 2))
+        assert kernels._tilt_step(t, 0, 11, 5, 4, 3, 0.03, 6.0, 0.01, buf) == ref(t, 5)
+
+
+def test_tilt_step_cuts_tracks_equal_junction_tilts():
+    """kernels.tilt_step_cuts computes tilts only around candidate junctions, searching each next
+    row; with every junction a candidate (``break_min`` 0) its cuts equal the step test run on
+    kernels.junction_tilts (every track at once) — on noisy positions and labels."""
+    from gbscan import kernels
+
+    lab, jx = _tilted_planes(0.12, -0.03, range(20, 40), noise=0.05, seed=1)
+    rng = np.random.default_rng(2)
+    flip = rng.random(lab.shape) < 0.01
+    lab[flip] = np.where(lab[flip] == G, B, G)
+    segs = uw.unroll_rows(lab)
+    x = jx(segs)
+    x[rng.random(x.size) < 0.03] = np.nan
+    H, W = lab.shape
+    got = kernels.tilt_step_cuts(x, segs.j_seg, segs.row, segs.u0, segs.u1, segs.j0, segs.j1, segs.j_ua, segs.j_la,
+                                 segs.j_lb, H, W, 6, 1.0, 10, 3, 0, 4, 3, 0.03, 6.0, 0.01)
+    t = kernels.junction_tilts(x, segs.j_seg, segs.row, segs.j_la, segs.j_lb, H, 6, 1.0, 5)
+    want = np.zeros_like(got)
+    buf = np.empty(4)
+    for s in range(segs.n):
+        j0, j1 = segs.j0[s], segs.j1[s]
+        if j1 - j0 < 7:
+            continue
+        for i in range(j0 + 3, j1 - 3):
+            want[i] = kernels._tilt_step(t, j0, j1, i, 4, 3, 0.03, 6.0, 0.01, buf)
+    assert want.sum() >= 5
+    np.testing.assert_array_equal(got, want)
+
+
+def test_tilt_params_are_validated():
+    for kw in (dict(tilt_step=-0.1), dict(tilt_z=-1.0), dict(tilt_rows=1), dict(tilt_window=2),
+               dict(tilt_break_rows=0), dict(tilt_break_min=21), dict(tilt_break_min=-1)):
+        with pytest.raises(GBError, match="tilt_"):
+            uw.UnwrapParams(**kw)
+    uw.UnwrapParams(tilt_step=0.0, tilt_break_min=0)

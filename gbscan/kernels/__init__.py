@@ -50,7 +50,7 @@ from .linking import *  # noqa: F401,F403
 from .classify import *  # noqa: F401,F403
 from .classify import _box4_8to15, _minmax4_from_quads, _quad_minmax2, _raw_hi_row  # noqa: F401  (tests)
 from .guards import *  # noqa: F401,F403
-from .guards import _brightness  # noqa: F401  (tests)
+from .guards import _brightness, _tilt_step  # noqa: F401  (tests)
 from .pointmap import *  # noqa: F401,F403
 from .regions import *  # noqa: F401,F403
 from .resample import *  # noqa: F401,F403

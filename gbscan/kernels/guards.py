@@ -742,3 +742,280 @@ def column_spread(column, mask, conf, ok_code, rough_rows, rough_scale, edge_px,
             _spread_out(sp2[:n], mr, ok_code, spread[v, lo:hi])
             fill_row(spread[v, :lo], np.float32(np.nan))
             fill_row(spread[v, hi:], np.float32(np.nan))
+
+
+@njit(cache=True, nogil=True)
+def _row_junction_starts(j_seg, seg_row, H):
+    # (H + 1,) first junction of each row (junctions are numbered row by row, left to right)
+    start = np.zeros(H + 1, np.int64)
+    for j in range(j_seg.shape[0]):
+        start[seg_row[j_seg[j]] + 1] += 1
+    for v in range(H):
+        start[v + 1] += start[v]
+    return start
+
+
+@njit(cache=True, nogil=True)
+def _next_row_matches(j_x, j_la, j_lb, a, b, c, e, tol_px, out):
+    # for each junction of row range [a, b): the located junction of row range [c, e) between
+    # the same two colours nearest it, within tol_px (-1: none).  Both rows are in order along
+    # the row, so one pointer walks the next row.
+    k0 = c
+    for j in range(a, b):
+        x = j_x[j]
+        if np.isnan(x):
+            continue
+        while k0 < e and not j_x[k0] >= x - tol_px:   # (NaN: never a match, passed)
+            k0 += 1
+        best = -1
+        bestd = tol_px
+        k = k0
+        while k < e and not j_x[k] > x + tol_px:
+            xk = j_x[k]
+            if j_la[k] == j_la[j] and j_lb[k] == j_lb[j] and not np.isnan(xk):
+                d = abs(xk - x)
+                if d <= bestd:
+                    best = k
+                    bestd = d
+            k += 1
+        out[j] = best
+
+
+@njit(cache=True, nogil=True)
+def _fit_add(acc, v, x):
+    # one point (row offset v, position x) into the sums n, sum v, sum x, sum v^2, sum v x
+    acc[0] += 1.0
+    acc[1] += v
+    acc[2] += x
+    acc[3] += v * v
+    acc[4] += v * x
+
+
+@njit(cache=True, nogil=True)
+def _fit_slope(acc, min_rows):
+    # least-squares slope d x / d v of the sums; NaN with fewer than min_rows points
+    n = acc[0]
+    den = n * acc[3] - acc[1] * acc[1]
+    if n < min_rows or not den > 0.0:
+        return np.nan
+    return (n * acc[4] - acc[1] * acc[2]) / den
+
+
+@njit(cache=True, nogil=True)
+def junction_tilts(j_x, j_seg, seg_row, j_la, j_lb, H, rows, tol_px, min_rows):
+    """The tilt of each located stripe boundary in the camera, ``d x / d v`` (camera px per row).
+
+    ``j_x`` (n_j,) float64 sub-pixel positions (NaN: not located) and the junction tables of
+    :func:`gbscan.kernels.row_segments` (``seg_row`` per segment, ``H`` rows; junctions numbered
+    row by row, left to right).  Each boundary is followed up to ``rows`` rows up and down: in
+    each next row, the located boundary between the same two colours nearest the last position,
+    within ``tol_px`` (none: the track ends there).  The tilt is the least-squares slope of the
+    positions over the rows followed; NaN where fewer than ``min_rows`` rows (the boundary's own
+    included) were followed.  Returns (n_j,) float64.
+    """
+    nj = j_x.shape[0]
+    out = np.full(nj, np.nan)
+    start = _row_junction_starts(j_seg, seg_row, H)
+    down = np.full(nj, -1, np.int64)
+    up = np.full(nj, -1, np.int64)
+    acc = np.zeros(5)
+    for v in range(H - 1):
+        _next_row_matches(j_x, j_la, j_lb, start[v], start[v + 1], start[v + 1], start[v + 2], tol_px, down)
+        _next_row_matches(j_x, j_la, j_lb, start[v + 1], start[v + 2], start[v], start[v + 1], tol_px, up)
+    for j in range(nj):
+        x0 = j_x[j]
+        if np.isnan(x0):
+            continue
+        acc[:] = 0.0
+        acc[0] = 1.0   # the boundary itself, at (0, 0)
+        for d in (-1, 1):
+            nxt = up if d < 0 else down
+            m = j
+            for k in range(1, rows + 1):
+                m = nxt[m]
+                if m < 0:
+                    break
+                _fit_add(acc, float(d * k), j_x[m] - x0)
+        out[j] = _fit_slope(acc, min_rows)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _median_sorted(a, n):
+    # median of a[:n], sorting it in place (insertion sort: n is a handful)
+    for i in range(1, n):
+        t = a[i]
+        k = i - 1
+        while k >= 0 and a[k] > t:
+            a[k + 1] = a[k]
+            k -= 1
+        a[k + 1] = t
+    return 0.5 * (a[(n - 1) // 2] + a[n // 2])
+
+
+@njit(cache=True, nogil=True)
+def _side_stats(tilt, a, b, buf):
+    # median and MAD of the finite tilts in [a, b); n = how many
+    n = 0
+    for k in range(a, b):
+        t = tilt[k]
+        if not np.isnan(t):
+            buf[n] = t
+            n += 1
+    if n == 0:
+        return np.nan, np.nan, 0
+    med = _median_sorted(buf, n)
+    for k in range(n):
+        buf[k] = abs(buf[k] - med)
+    return med, _median_sorted(buf, n), n
+
+
+@njit(cache=True, nogil=True)
+def _tilt_step(tilt, j0, j1, i, window, min_n, step, z, floor, buf):
+    # the test of tilt_step_cuts at junction i of the segment's junctions [j0, j1)
+    # (medians more than step apart need a range of more than step: most junctions stop there)
+    lo = np.inf
+    hi = -np.inf
+    for k in range(max(j0, i - window), min(j1, i + 1 + window)):
+        t = tilt[k]
+        if k != i and not np.isnan(t):
+            lo = min(lo, t)
+            hi = max(hi, t)
+    if not hi - lo > step:
+        return False
+    ml, dl, nl = _side_stats(tilt, max(j0, i - window), i, buf)
+    if nl < min_n:
+        return False
+    mr, dr, nr = _side_stats(tilt, i + 1, min(j1, i + 1 + window), buf)
+    if nr < min_n:
+        return False
+    d = abs(mr - ml)
+    return d > step and d > z * max(1.4826 * max(dl, dr), floor)
+
+
+@njit(cache=True, nogil=True)
+def _match_in_row(j_x, j_ua, j_la, j_lb, a, b, x, uw, la, lb, tol_px):
+    # the located junction of row range [a, b) with labels (la, lb) nearest the position x, within
+    # tol_px; -1 if none.  uw: x in the tables' pixel columns (a decoded window's j_x are the
+    # frame's), found +-2 px (a junction lies between its runs' pixels j_ua and j_ub <= j_ua + 2)
+    lo = a
+    hi = b
+    key = uw - tol_px - 2.0
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if j_ua[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    best = -1
+    bestd = tol_px
+    k = lo
+    while k < b and j_ua[k] <= uw + tol_px + 2.0:
+        xk = j_x[k]
+        if j_la[k] == la and j_lb[k] == lb and not np.isnan(xk):
+            d = abs(xk - x)
+            if d <= bestd:
+                best = k
+                bestd = d
+        k += 1
+    return best
+
+
+@njit(cache=True, nogil=True)
+def _track_tilt(j, j_x, j_seg, seg_row, j_ua, j_la, j_lb, start, H, rows, tol_px, min_rows):
+    # junction_tilts for one junction (the same tracks and fit, searched row by row)
+    x0 = j_x[j]
+    if np.isnan(x0):
+        return np.nan
+    v0 = seg_row[j_seg[j]]
+    acc = np.zeros(5)
+    acc[0] = 1.0   # the boundary itself, at (0, 0)
+    for d in (-1, 1):
+        x = x0
+        for k in range(1, rows + 1):
+            v = v0 + d * k
+            if v < 0 or v >= H:
+                break
+            m = _match_in_row(j_x, j_ua, j_la, j_lb, start[v], start[v + 1], x, j_ua[j] + (x - x0), j_la[j],
+                              j_lb[j], tol_px)
+            if m < 0:
+                break
+            x = j_x[m]
+            _fit_add(acc, float(d * k), x - x0)
+    return _fit_slope(acc, min_rows)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _add_row(a, r, out):
+    # out = a + r (a column's running count, one row down)
+    for u in range(out.size):
+        out[u] = a[u] + r[u]
+
+
+@njit(cache=True, nogil=True)
+def tilt_step_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_la, j_lb, H, W, rows, tol_px,
+                   break_rows, break_px, break_min, window, min_n, step, z, floor):
+    """Junctions where a row crosses the depth-edge line of the rows around it with the boundaries'
+    tilt stepping there (two surfaces welded in one segment where their stripes line up).
+
+    Step 1's tables (:func:`gbscan.kernels.row_segments`; ``j_x`` (n_j,) float64 the located
+    positions, NaN where none).  A junction ``i`` of a segment, with at least ``min_n`` junctions
+    either side of it in the segment, is a candidate when at least ``break_min`` of the
+    ``2 * break_rows`` rows around (its own left out) have a segment end within ``break_px`` px
+    of its column (the rows there were parted: a silhouette that this row crossed).  It is cut
+    when the tilts (:func:`junction_tilts`, ``rows``, ``tol_px``; computed only where needed) of
+    the ``window`` junctions left of it and of the ``window`` right of it (``i`` left out: it may
+    be the mixed boundary at the contact), at least ``min_n`` finite on each side, have medians
+    more than ``step`` px per row apart and more than ``z`` times the sides' spread (1.4826 x the
+    larger MAD, at least ``floor``): a tilt changing steadily along the row (a curved surface)
+    spreads each side as much as it moves the medians.  Returns (n_j,) uint8.
+    """
+    nj = j_x.shape[0]
+    cut = np.zeros(nj, np.uint8)
+    # the pixels within break_px of a segment end, and how many rows have one in each column (a
+    # column with fewer than break_min such rows has no candidate: most junctions stop there)
+    near = np.zeros((H, W), np.uint8)
+    col_rows = np.zeros(W, np.int32)
+    for s in range(seg_row.shape[0]):
+        v = seg_row[s]
+        for e in (seg_u0[s], seg_u1[s]):
+            for u in range(max(0, e - break_px), min(W, e + break_px + 1)):
+                if near[v, u] == 0:
+                    near[v, u] = 1
+                    col_rows[u] += 1
+    # (int16 running sums down each column wrap on frames of over 32767 rows; the differences
+    # below, at most 2 * break_rows + 1, are taken modulo 2**16 and stay exact)
+    csum = np.empty((H + 1, W), np.int16)
+    csum[0] = 0
+    for v in range(H):
+        _add_row(csum[v], near[v], csum[v + 1])
+    start = np.empty(0, np.int64)   # the tracks' tables, made at the first candidate
+    tilt = np.empty(0, np.float64)
+    done = np.empty(0, np.uint8)
+    buf = np.empty(max(window, 1), np.float64)
+    for s in range(seg_j0.shape[0]):
+        j0 = seg_j0[s]
+        j1 = seg_j1[s]
+        if j1 - j0 < 2 * min_n + 1:
+            continue
+        v = seg_row[s]
+        r0 = max(0, v - break_rows)
+        r1 = min(H, v + break_rows + 1)
+        for i in range(j0 + min_n, j1 - min_n):
+            u = j_ua[i]
+            if col_rows[u] < break_min:
+                continue
+            if ((np.int64(csum[r1, u]) - np.int64(csum[r0, u])) & 0xFFFF) - near[v, u] < break_min:
+                continue
+            if tilt.shape[0] == 0:
+                start = _row_junction_starts(j_seg, seg_row, H)
+                tilt = np.full(nj, np.nan)
+                done = np.zeros(nj, np.uint8)
+            for k in range(max(j0, i - window), min(j1, i + 1 + window)):
+                if done[k] == 0:
+                    tilt[k] = _track_tilt(k, j_x, j_seg, seg_row, j_ua, j_la, j_lb, start, H, rows, tol_px,
+                                          rows - 1)
+                    done[k] = 1
+            if _tilt_step(tilt, j0, j1, i, window, min_n, step, z, floor, buf):
+                cut[i] = 1
+    return cut
