@@ -760,7 +760,9 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
 
     ``locate`` (optional): a function ``Segments -> (n_junctions,) float32`` sub-pixel boundary
     positions (the decoder passes its own); with it, step 1 also cuts rows at depth edges
-    (:func:`cut_depth_edges`, :func:`cut_unlocated`) and the positions travel with the segments
+    (:func:`cut_depth_edges`, :func:`cut_unlocated`, and where a row crosses a line the rows
+    around it were parted at with the stripes' lean stepping there: ``UnwrapParams.tilt_step``)
+    and the positions travel with the segments
     (``segments.j_x``).  ``retry_px`` (optional, (H, W) bool, with ``locate``): rows are also cut
     where the boundary spacing jumps by more than ``params.retry_spacing_ratio`` at a boundary
     whose left pixel is in it (the decoder's retry of welded regions, see :class:`UnwrapParams`).

@@ -20,7 +20,7 @@ The kernels live in one module per concept and are all reachable here as ``kerne
 ``regions``        final masks (``finish_pixels``), dark transitions, region histograms, offset scores and the
                    indexing's tests, step 7, rim; pasting a window's map into the frame
 ``linking``        vertical votes between rows, marker conflicts, the linking's votes grouped, slope samples, verdicts
-``guards``         rim guard rows, stripe SNR, orphans, brightness-step guard, bridge cuts
+``guards``         rim guard rows, stripe SNR, orphans, brightness-step guard, bridge cuts, tilt-step cuts
 ``resample``       stripe width from runs, linear-light shrinking, expanding a coarse decode
 ``pointmap``       cleaning an organised point map (``gbscan.clean``)
 =================  =================================================================================

@@ -983,6 +983,10 @@ def tilt_step_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_
                 if near[v, u] == 0:
                     near[v, u] = 1
                     col_rows[u] += 1
+    # columns with enough such rows, counted from the left (a segment spanning none is passed over)
+    col_ok = np.zeros(W + 1, np.int32)
+    for u in range(W):
+        col_ok[u + 1] = col_ok[u] + (1 if col_rows[u] >= break_min else 0)
     # (int16 running sums down each column wrap on frames of over 32767 rows; the differences
     # below, at most 2 * break_rows + 1, are taken modulo 2**16 and stay exact)
     csum = np.empty((H + 1, W), np.int16)
@@ -997,6 +1001,8 @@ def tilt_step_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_
         j0 = seg_j0[s]
         j1 = seg_j1[s]
         if j1 - j0 < 2 * min_n + 1:
+            continue
+        if col_ok[j_ua[j1 - min_n - 1] + 1] - col_ok[j_ua[j0 + min_n]] == 0:
             continue
         v = seg_row[s]
         r0 = max(0, v - break_rows)
