@@ -958,12 +958,13 @@ def tilt_step_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_
     """Junctions where a row crosses the depth-edge line of the rows around it with the boundaries'
     tilt stepping there (two surfaces welded in one segment where their stripes line up).
 
-    Step 1's tables (:func:`gbscan.kernels.row_segments`; ``j_x`` (n_j,) float64 the located
-    positions, NaN where none).  A junction ``i`` of a segment, with at least ``min_n`` junctions
+    Step 1's tables (:func:`gbscan.kernels.row_segments`; ``j_x`` (n_j,) float32 or float64 the
+    located positions, NaN where none).  A junction ``i`` of a segment, with at least ``min_n`` junctions
     either side of it in the segment, is a candidate when at least ``break_min`` of the
     ``2 * break_rows`` rows around (its own left out) have a segment end within ``break_px`` px
     of its column (the rows there were parted: a silhouette that this row crossed).  It is cut
-    when the tilts (:func:`junction_tilts`, ``rows``, ``tol_px``; computed only where needed) of
+    when the tilts (:func:`junction_tilts` with ``rows``, ``tol_px`` and ``min_rows = rows - 1``;
+    computed only where needed) of
     the ``window`` junctions left of it and of the ``window`` right of it (``i`` left out: it may
     be the mixed boundary at the contact), at least ``min_n`` finite on each side, have medians
     more than ``step`` px per row apart and more than ``z`` times the sides' spread (1.4826 x the
