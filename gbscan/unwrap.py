@@ -238,27 +238,30 @@ class UnwrapParams:
         z 14: 82.12 -> 81.87 % reported), the real face in ``scripts/coverage_study.py`` one under
         a crease on two of three seeds (0.2 points).  The real face's hanging components reach
         0.11-0.26 px per row at z 5-8 (its relief): z 5 would cost it 1.0-1.4 points.
-    tilt_step, tilt_z, tilt_rows, tilt_window, tilt_break_rows, tilt_break_min : step 1 also cuts a
-        row where it crosses the depth-edge line of the rows around it and the stripes' lean
-        steps there (:func:`gbscan.kernels.tilt_step_cuts`).  Two surfaces whose stripes line up
-        along a silhouette (an even number of stripes apart) and whose boundary spacings differ by
-        less than ``spacing_ratio`` and ``bridge_ratio`` weld in the rows that cross it unparted:
-        the tilted panel of the multi-object scene at 140-160 mm baselines (8 stripes off, the
-        panel's spacing 8 % wider than the wall's, one marker that fits both offsets) was welded
-        into the wall's region along 3-7 of its rows and pieces of it were linked through them.
-        The stripes' lean differs: each located boundary is followed ``tilt_rows`` rows up and
-        down (its tilt, ``d x / d v``, least squares: the panel 0.08-0.10 camera px per row, the
-        wall 0.00).  A junction with at least ``tilt_break_min`` of the ``2 * tilt_break_rows``
-        rows around it ending a segment within 3 px of its column (step 1 parted those rows at
-        the silhouette) is cut when the median tilts of the ``tilt_window`` junctions either
-        side of it differ by more than ``tilt_step`` px per row at a z-score over ``tilt_z``
-        (``tilt_step=0`` disables).  A face's creases step the tilt as much (0.07-0.36 px per row
-        at z 6-38) but are not crossed by such a line.  ``scripts/sweep_decode.py --set
-        baselines``: wrong non-edge pixels 1179 -> 24, on depth edges 230 -> 158 (reported 84.78
-        -> 84.77 %); the 48-scene sweep 84.03 -> 84.05 % (7 wrong, 90 -> 91 on depth edges; the
-        multi-object frames +0.1 points, two renders of the real face and two heads -0.03 to
-        -0.06).  Counting the rows the spacing and bridge cuts part (not only the segment
-        ends) fixed the supersample-1 renders too, but cost the real face up to 0.8 points.
+    tilt_step, tilt_z, tilt_rows, tilt_window, tilt_break_rows, tilt_break_min, tilt_break_cuts :
+        step 1 also cuts a row where it crosses the depth-edge line of the rows around it and the
+        stripes' lean steps there (:func:`gbscan.kernels.tilt_step_cuts`).  Two surfaces whose
+        stripes line up along a silhouette (an even number of stripes apart) and whose boundary
+        spacings differ by less than ``spacing_ratio`` and ``bridge_ratio`` weld in the rows that
+        cross it unparted: the tilted panel of the multi-object scene at 140-160 mm baselines (8
+        stripes off, the panel's spacing 8 % wider than the wall's, one marker that fits both
+        offsets) was welded into the wall's region along 3-7 of its rows and pieces of it were
+        linked through them.  The stripes' lean differs: each located boundary is followed
+        ``tilt_rows`` rows up and down (its tilt, ``d x / d v``, least squares: the panel
+        0.08-0.10 camera px per row, the wall 0.00).  A junction whose own row is not parted near
+        it, with at least ``tilt_break_min`` of the ``2 * tilt_break_rows`` rows around it parted
+        within 3 px of its column, is cut when the median tilts of the ``tilt_window`` junctions
+        either side of it differ by more than ``tilt_step`` px per row at a z-score over
+        ``tilt_z`` (``tilt_step=0`` disables).  A row is parted there where step 1 ended a
+        segment, and (``tilt_break_cuts``) where the spacing or bridge cut cut a junction across
+        which the tilt steps by the same test: renders without supersampling part the
+        silhouette's rows that way.  A face's creases step the tilt as much (0.07-0.36 px per
+        row at z 6-38) but are not crossed by such a line.  ``scripts/sweep_decode.py --set
+        baselines``: wrong non-edge pixels 1179 -> 0, on depth edges 230 -> 126 (reported 84.78
+        -> 84.72 %: 175 mm -2.8 points, 125-140 mm up to +2.2); the 48-scene sweep 84.03 -> 84.14 %
+        (7 wrong, 90 -> 94 on depth edges; the real face's renders -0.09 to +0.15 points).
+        Counting every spacing or bridge cut as parting its row cost the real face 0.8 points;
+        segment ends alone left the supersample-1 renders' welds (150 mm seed 0: 198 wrong).
     retry_spacing_ratio, retry_min_px : a region of at least ``retry_min_px`` pixels whose
         markers do not fit the pattern or leave its offset ambiguous is often two surfaces welded
         along a silhouette where the boundary spacing jumps by less than ``spacing_ratio`` (the
@@ -328,6 +331,7 @@ class UnwrapParams:
     tilt_window: int = 4
     tilt_break_rows: int = 10
     tilt_break_min: int = 10
+    tilt_break_cuts: bool = True
     volume_frac: float = 0.5
     retry_spacing_ratio: float = 1.2
     retry_min_px: int = 1000
@@ -684,10 +688,11 @@ def _unlocated_cut_mask(segs: Segments, ratio: float, pre=None):
     return cut if cut.any() else None
 
 
-def _tilt_cut_mask(segs: Segments, shape, p: "UnwrapParams"):
+def _tilt_cut_mask(segs: Segments, shape, p: "UnwrapParams", pre=None):
     """(n_junctions,) uint8 junctions where a row crosses the depth-edge line of the rows around
-    it and the boundaries' tilt steps there (``p.tilt_step``, :func:`gbscan.kernels.tilt_step_cuts`),
-    None when it cuts none."""
+    it and the boundaries' tilt steps there (``p.tilt_step``, :func:`gbscan.kernels.tilt_step_cuts`;
+    ``pre``: the junctions the spacing and bridge cuts cut, which part rows too where the tilt
+    steps across them, with ``p.tilt_break_cuts``), None when it cuts none."""
     from . import kernels
 
     H, W = shape
@@ -697,10 +702,11 @@ def _tilt_cut_mask(segs: Segments, shape, p: "UnwrapParams"):
                                  segs.j1, segs.j_ua, segs.j_la, segs.j_lb, int(H), int(W), int(p.tilt_rows),
                                  _TILT_TRACK_PX, int(p.tilt_break_rows), _TILT_BREAK_PX, int(p.tilt_break_min),
                                  int(p.tilt_window), _TILT_MIN_SIDE, float(p.tilt_step), float(p.tilt_z),
-                                 _TILT_NOISE_FLOOR)
+                                 _TILT_NOISE_FLOOR, pre if pre is not None and p.tilt_break_cuts else _NO_JUNCTIONS)
     return cut if cut.any() else None
 
 
+_NO_JUNCTIONS = np.zeros(0, np.uint8)
 _TILT_TRACK_PX = 1.0     # a boundary is followed to the next row's nearest one within this (camera px)
 _TILT_BREAK_PX = 3       # a segment end this close (camera px) to a junction's column counts as a break there
 _TILT_MIN_SIDE = 3       # finite tilts each side of a junction the tilt-step test needs
@@ -790,7 +796,8 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
                 c_depth = c_weak if c_depth is None else (c_depth | c_weak)
                 c_depth = c_depth if c_depth.any() else None
         c_unloc = _unlocated_cut_mask(segs1, p.bridge_ratio, c_depth)
-        c_tilt = _tilt_cut_mask(segs1, labels.shape, p)
+        pre = c_depth if c_unloc is None else (c_unloc if c_depth is None else c_depth | c_unloc)
+        c_tilt = _tilt_cut_mask(segs1, labels.shape, p, pre)
         n_depth_cuts = int(c_depth.sum()) if c_depth is not None else 0
         n_unlocated_cuts = int(c_unloc.sum()) if c_unloc is not None else 0
         n_tilt_cuts = int(c_tilt.sum()) if c_tilt is not None else 0

@@ -1694,17 +1694,19 @@ def test_vertical_votes_int64_keys_equal_the_sorted_form():
 
 
 # -- the tilt-step cut (two surfaces welded along a row where their stripes line up) -------------
-def _tilted_planes(tilt_left, tilt_right, weld_rows, seam=40, rows=60, width=88, period=8.0, noise=0.0, seed=0):
+def _tilted_planes(tilt_left, tilt_right, weld_rows, seam=40, rows=60, width=88, period=8.0, noise=0.0, seed=0,
+                   line_row=30):
     """Labels (rows, width) of green/blue stripes ``period`` px wide (boundaries every
     ``period / 2`` px): left of column ``seam`` leaning ``tilt_left`` camera px per row, right of
-    it ``tilt_right`` (shifted so that the two meet in row 0 at a whole stripe: lined up).
-    The rows in ``weld_rows`` cross the seam; every other row has 3 unlabelled px there (a
-    silhouette the row was parted at).  Returns the labels and a ``j_x`` function giving each
-    junction its true boundary position (plus ``noise`` px, seeded) for step 1's segments."""
+    it ``tilt_right``, lined up in row ``line_row`` (their stripes meet there at a whole stripe,
+    so the spacing across the seam is the rows' own within 0.1 px a row of it).  The rows in
+    ``weld_rows`` cross the seam; every other row has 3 unlabelled px there (a silhouette the row
+    was parted at).  Returns the labels and a ``j_x`` function giving each junction its true
+    boundary position (plus ``noise`` px, seeded) for step 1's segments."""
     half = period / 2
 
     def model(u, v):
-        return tilt_left * v if u < seam else tilt_right * v
+        return tilt_left * v if u < seam else tilt_right * v + (tilt_left - tilt_right) * line_row
 
     lab = np.zeros((rows, width), np.uint8)
     for v in range(rows):
@@ -1789,11 +1791,46 @@ def test_tilt_step_cuts_part_the_welded_rows_only():
     assert _tilt_cuts(lab2, jx2)[1].sum() == 0
     lab3, jx3 = _tilted_planes(0.1, 0.0, range(60), noise=0.02)
     assert _tilt_cuts(lab3, jx3)[1].sum() == 0
-    # through unwrap: the welded rows' segments end at the seam, the stats count the cuts
-    un = uw.unwrap(lab, locate=lambda s: jx(s).astype(np.float32))
-    assert un.stats["tilt_cuts"] == int(cut.sum())
-    seam_rows = [r for r in weld if (un.segments.row == r).sum() >= 2]
-    assert seam_rows == list(weld)
+    # through unwrap: the welded rows' segments end at the seam (lined up there: the spacing cut
+    # leaves them), the stats count the cuts
+    def parted(**kw):
+        un = uw.unwrap(lab, uw.UnwrapParams(**kw), locate=lambda s: jx(s).astype(np.float32))
+        return [r for r in weld if (un.segments.row == r).sum() >= 2], un.stats["tilt_cuts"]
+
+    assert parted() == (list(weld), int(cut.sum()))
+    assert parted(tilt_step=0.0) == ([], 0)
+
+
+def test_tilt_step_cuts_count_rows_parted_by_a_cut_where_the_tilt_steps_across_it():
+    """kernels.tilt_step_cuts' ``pre``: rows parted by the spacing or bridge cut (junctions cut
+    already) count as parted where the tilt steps across the cut junction too.  The two planes
+    crossing the seam in every row: none cut without ``pre`` (a crease); with the seam junctions
+    of the rows outside 28-33 given as cut, rows 28-33 are cut at the seam, and nothing away from
+    it (a row whose given cut is a junction beside the step may be cut at the step as well);
+    given where both planes lean alike (no step across those cuts), nothing."""
+    from gbscan import kernels
+
+    weld = range(28, 34)
+
+    def cuts(tilt_right, with_pre):
+        lab, jx = _tilted_planes(0.1, tilt_right, range(60), noise=0.02)
+        segs = uw.unroll_rows(lab)
+        x = jx(segs)
+        v = segs.row[segs.j_seg]
+        pre = np.zeros(x.size, np.uint8)
+        if with_pre:
+            for r in set(range(60)) - set(weld):
+                k = np.flatnonzero(v == r)
+                pre[k[np.argmin(np.abs(x[k] - 40.0))]] = 1
+        H, W = lab.shape
+        c = kernels.tilt_step_cuts(x, segs.j_seg, segs.row, segs.u0, segs.u1, segs.j0, segs.j1, segs.j_ua, segs.j_la,
+                                   segs.j_lb, H, W, 6, 1.0, 10, 3, 10, 4, 3, 0.03, 6.0, 0.01, pre)
+        return set(v[c == 1]), segs.j_ua[c == 1]
+
+    assert cuts(0.0, False)[0] == set()
+    rows, cols = cuts(0.0, True)
+    assert rows >= set(weld) and np.all(np.abs(cols - 40) <= 6)   # (boundaries 4 px apart)
+    assert cuts(0.1, True)[0] == set()
 
 
 def test_tilt_step_equals_the_median_test():
@@ -1844,7 +1881,7 @@ def test_tilt_step_cuts_tracks_equal_junction_tilts():
     x[rng.random(x.size) < 0.03] = np.nan
     H, W = lab.shape
     got = kernels.tilt_step_cuts(x, segs.j_seg, segs.row, segs.u0, segs.u1, segs.j0, segs.j1, segs.j_ua, segs.j_la,
-                                 segs.j_lb, H, W, 6, 1.0, 10, 3, 0, 4, 3, 0.03, 6.0, 0.01)
+                                 segs.j_lb, H, W, 6, 1.0, 10, 3, 0, 4, 3, 0.03, 6.0, 0.01, np.zeros(0, np.uint8))
     t = kernels.junction_tilts(x, segs.j_seg, segs.row, segs.j_la, segs.j_lb, H, 6, 1.0, 5)
     want = np.zeros_like(got)
     buf = np.empty(4)

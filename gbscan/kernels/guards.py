@@ -953,16 +953,36 @@ def _add_row(a, r, out):
 
 
 @njit(cache=True, nogil=True)
+def _tilts_around(i, j0, j1, window, tilt, done, j_x, j_seg, seg_row, j_ua, j_la, j_lb, start, H, rows, tol_px):
+    # the tilts of junction i's test window (its segment's junctions [j0, j1)), each followed once
+    for k in range(max(j0, i - window), min(j1, i + 1 + window)):
+        if done[k] == 0:
+            tilt[k] = _track_tilt(k, j_x, j_seg, seg_row, j_ua, j_la, j_lb, start, H, rows, tol_px, rows - 1)
+            done[k] = 1
+
+
+@njit(cache=True, nogil=True)
+def _mark_end(near, col_rows, v, e, W, break_px):
+    # the pixels of row v within break_px of column e: near a segment end
+    for u in range(max(0, e - break_px), min(W, e + break_px + 1)):
+        if near[v, u] == 0:
+            near[v, u] = 1
+            col_rows[u] += 1
+
+
+@njit(cache=True, nogil=True)
 def tilt_step_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_la, j_lb, H, W, rows, tol_px,
-                   break_rows, break_px, break_min, window, min_n, step, z, floor):
+                   break_rows, break_px, break_min, window, min_n, step, z, floor, pre):
     """Junctions where a row crosses the depth-edge line of the rows around it with the boundaries'
     tilt stepping there (two surfaces welded in one segment where their stripes line up).
 
     Step 1's tables (:func:`gbscan.kernels.row_segments`; ``j_x`` (n_j,) float32 or float64 the
     located positions, NaN where none).  A junction ``i`` of a segment, with at least ``min_n`` junctions
     either side of it in the segment, is a candidate when at least ``break_min`` of the
-    ``2 * break_rows`` rows around (its own left out) have a segment end within ``break_px`` px
-    of its column (the rows there were parted: a silhouette that this row crossed).  It is cut
+    ``2 * break_rows`` rows around have a segment end within ``break_px`` px of its column and
+    its own row has none (the rows there were parted: a silhouette that this row crossed; ``pre``
+    (n_j,) uint8, or empty: junctions cut already, by the spacing and bridge cuts, that count as
+    segment ends where the tilt steps across them by the test below).  It is cut
     when the tilts (:func:`junction_tilts` with ``rows``, ``tol_px`` and ``min_rows = rows - 1``;
     computed only where needed) of
     the ``window`` junctions left of it and of the ``window`` right of it (``i`` left out: it may
@@ -978,12 +998,24 @@ def tilt_step_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_
     near = np.zeros((H, W), np.uint8)
     col_rows = np.zeros(W, np.int32)
     for s in range(seg_row.shape[0]):
-        v = seg_row[s]
-        for e in (seg_u0[s], seg_u1[s]):
-            for u in range(max(0, e - break_px), min(W, e + break_px + 1)):
-                if near[v, u] == 0:
-                    near[v, u] = 1
-                    col_rows[u] += 1
+        _mark_end(near, col_rows, seg_row[s], seg_u0[s], W, break_px)
+        _mark_end(near, col_rows, seg_row[s], seg_u1[s], W, break_px)
+    start = np.empty(0, np.int64)   # the tracks' tables, made at the first junction tested
+    tilt = np.empty(0, np.float64)
+    done = np.empty(0, np.uint8)
+    buf = np.empty(max(window, 1), np.float64)
+    for j in range(pre.shape[0]):
+        if pre[j] == 0:
+            continue
+        if tilt.shape[0] == 0:
+            start = _row_junction_starts(j_seg, seg_row, H)
+            tilt = np.full(nj, np.nan)
+            done = np.zeros(nj, np.uint8)
+        s = j_seg[j]
+        _tilts_around(j, seg_j0[s], seg_j1[s], window, tilt, done, j_x, j_seg, seg_row, j_ua, j_la, j_lb, start, H,
+                      rows, tol_px)
+        if _tilt_step(tilt, seg_j0[s], seg_j1[s], j, window, min_n, step, z, floor, buf):
+            _mark_end(near, col_rows, seg_row[s], j_ua[j], W, break_px)
     # columns with enough such rows, counted from the left (a segment spanning none is passed over)
     col_ok = np.zeros(W + 1, np.int32)
     for u in range(W):
@@ -994,10 +1026,6 @@ def tilt_step_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_
     csum[0] = 0
     for v in range(H):
         _add_row(csum[v], near[v], csum[v + 1])
-    start = np.empty(0, np.int64)   # the tracks' tables, made at the first candidate
-    tilt = np.empty(0, np.float64)
-    done = np.empty(0, np.uint8)
-    buf = np.empty(max(window, 1), np.float64)
     for s in range(seg_j0.shape[0]):
         j0 = seg_j0[s]
         j1 = seg_j1[s]
@@ -1010,19 +1038,16 @@ def tilt_step_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_
         r1 = min(H, v + break_rows + 1)
         for i in range(j0 + min_n, j1 - min_n):
             u = j_ua[i]
-            if col_rows[u] < break_min:
+            if col_rows[u] < break_min or near[v, u] != 0:   # (a row parted here already: no weld)
                 continue
-            if ((np.int64(csum[r1, u]) - np.int64(csum[r0, u])) & 0xFFFF) - near[v, u] < break_min:
+            if (np.int64(csum[r1, u]) - np.int64(csum[r0, u])) & 0xFFFF < break_min:
                 continue
             if tilt.shape[0] == 0:
                 start = _row_junction_starts(j_seg, seg_row, H)
                 tilt = np.full(nj, np.nan)
                 done = np.zeros(nj, np.uint8)
-            for k in range(max(j0, i - window), min(j1, i + 1 + window)):
-                if done[k] == 0:
-                    tilt[k] = _track_tilt(k, j_x, j_seg, seg_row, j_ua, j_la, j_lb, start, H, rows, tol_px,
-                                          rows - 1)
-                    done[k] = 1
+            _tilts_around(i, j0, j1, window, tilt, done, j_x, j_seg, seg_row, j_ua, j_la, j_lb, start, H, rows,
+                          tol_px)
             if _tilt_step(tilt, j0, j1, i, window, min_n, step, z, floor, buf):
                 cut[i] = 1
     return cut
