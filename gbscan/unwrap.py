@@ -698,11 +698,20 @@ def _tilt_cut_mask(segs: Segments, shape, p: "UnwrapParams", pre=None):
     H, W = shape
     if segs.j_x is None or p.tilt_step <= 0 or segs.j_seg.size == 0:
         return None
+    # the tracks and tests done, kept on the segments: the decoder's retries unwrap the same
+    # step-1 segments (and positions) again
+    memo = getattr(segs, "_tilt_memo", None)
+    key = (int(p.tilt_rows), int(p.tilt_window), float(p.tilt_step), float(p.tilt_z))
+    if memo is None or memo[0] != key or memo[1] is not segs.j_x:
+        n = segs.j_seg.size
+        memo = (key, segs.j_x, np.full(n, np.nan), np.zeros(n, np.uint8), np.zeros(n, np.uint8))
+        segs._tilt_memo = memo
     cut = kernels.tilt_step_cuts(segs.j_x, segs.j_seg, segs.row, segs.u0, segs.u1, segs.j0,
                                  segs.j1, segs.j_ua, segs.j_la, segs.j_lb, int(H), int(W), int(p.tilt_rows),
                                  _TILT_TRACK_PX, int(p.tilt_break_rows), _TILT_BREAK_PX, int(p.tilt_break_min),
                                  int(p.tilt_window), _TILT_MIN_SIDE, float(p.tilt_step), float(p.tilt_z),
-                                 _TILT_NOISE_FLOOR, pre if pre is not None and p.tilt_break_cuts else _NO_JUNCTIONS)
+                                 _TILT_NOISE_FLOOR, pre if pre is not None and p.tilt_break_cuts else _NO_JUNCTIONS,
+                                 *memo[2:])
     return cut if cut.any() else None
 
 

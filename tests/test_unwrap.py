@@ -1727,6 +1727,11 @@ def _tilted_planes(tilt_left, tilt_right, weld_rows, seam=40, rows=60, width=88,
     return lab, jx
 
 
+def _memo(n):
+    # kernels.tilt_step_cuts' memo: tilts, followed, tested
+    return np.full(n, np.nan), np.zeros(n, np.uint8), np.zeros(n, np.uint8)
+
+
 def _tilt_cuts(lab, jx, **kw):
     from gbscan import kernels
 
@@ -1824,7 +1829,7 @@ def test_tilt_step_cuts_count_rows_parted_by_a_cut_where_the_tilt_steps_across_i
                 pre[k[np.argmin(np.abs(x[k] - 40.0))]] = 1
         H, W = lab.shape
         c = kernels.tilt_step_cuts(x, segs.j_seg, segs.row, segs.u0, segs.u1, segs.j0, segs.j1, segs.j_ua, segs.j_la,
-                                   segs.j_lb, H, W, 6, 1.0, 10, 3, 10, 4, 3, 0.03, 6.0, 0.01, pre)
+                                   segs.j_lb, H, W, 6, 1.0, 10, 3, 10, 4, 3, 0.03, 6.0, 0.01, pre, *_memo(x.size))
         return set(v[c == 1]), segs.j_ua[c == 1]
 
     assert cuts(0.0, False)[0] == set()
@@ -1881,7 +1886,8 @@ def test_tilt_step_cuts_tracks_equal_junction_tilts():
     x[rng.random(x.size) < 0.03] = np.nan
     H, W = lab.shape
     got = kernels.tilt_step_cuts(x, segs.j_seg, segs.row, segs.u0, segs.u1, segs.j0, segs.j1, segs.j_ua, segs.j_la,
-                                 segs.j_lb, H, W, 6, 1.0, 10, 3, 0, 4, 3, 0.03, 6.0, 0.01, np.zeros(0, np.uint8))
+                                 segs.j_lb, H, W, 6, 1.0, 10, 3, 0, 4, 3, 0.03, 6.0, 0.01, np.zeros(0, np.uint8),
+                                 *_memo(x.size))
     t = kernels.junction_tilts(x, segs.j_seg, segs.row, segs.j_la, segs.j_lb, H, 6, 1.0, 5)
     want = np.zeros_like(got)
     buf = np.empty(4)

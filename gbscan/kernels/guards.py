@@ -946,10 +946,10 @@ def _track_tilt(j, j_x, j_seg, seg_row, j_ua, j_la, j_lb, start, H, rows, tol_px
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _add_row(a, r, out):
-    # out = a + r (a column's running count, one row down)
+def _add_row2(a, r, q, out):
+    # out = a + (r | q) (a column's running count, one row down)
     for u in range(out.size):
-        out[u] = a[u] + r[u]
+        out[u] = a[u] + (r[u] | q[u])
 
 
 @njit(cache=True, nogil=True)
@@ -962,17 +962,55 @@ def _tilts_around(i, j0, j1, window, tilt, done, j_x, j_seg, seg_row, j_ua, j_la
 
 
 @njit(cache=True, nogil=True)
-def _mark_end(near, col_rows, v, e, W, break_px):
-    # the pixels of row v within break_px of column e: near a segment end
+def _mark_end(near, other, col_rows, v, e, W, break_px):
+    # the pixels of row v within break_px of column e into near; col_rows counts each pixel once
+    # over near and other
     for u in range(max(0, e - break_px), min(W, e + break_px + 1)):
         if near[v, u] == 0:
             near[v, u] = 1
-            col_rows[u] += 1
+            if other[v, u] == 0:
+                col_rows[u] += 1
+
+
+@njit(cache=True, nogil=True)
+def _steps(j, stepped, window, min_n, step, z, floor, buf, tilt, done, j_x, j_seg, seg_row, seg_j0, seg_j1, j_ua,
+           j_la, j_lb, start, H, rows, tol_px):
+    # junction j's test (_tilt_step over its segment), run once: stepped[j] 1 steps, 2 does not
+    if stepped[j] == 0:
+        s = j_seg[j]
+        _tilts_around(j, seg_j0[s], seg_j1[s], window, tilt, done, j_x, j_seg, seg_row, j_ua, j_la, j_lb, start, H,
+                      rows, tol_px)
+        stepped[j] = 1 if _tilt_step(tilt, seg_j0[s], seg_j1[s], j, window, min_n, step, z, floor, buf) else 2
+    return stepped[j] == 1
+
+
+@njit(cache=True, nogil=True)
+def _pre_parts(r, u, pre, stepped, start, break_px, window, min_n, step, z, floor, buf, tilt, done, j_x, j_seg,
+               seg_row, seg_j0, seg_j1, j_ua, j_la, j_lb, H, rows, tol_px):
+    # does a junction of row r cut already, within break_px of column u, part its row: the tilt
+    # steps across it (each tested once)
+    a = start[r]
+    b = start[r + 1]
+    lo = a
+    hi = b
+    while lo < hi:   # the row's first junction at or right of u - break_px
+        mid = (lo + hi) // 2
+        if j_ua[mid] < u - break_px:
+            lo = mid + 1
+        else:
+            hi = mid
+    for j in range(lo, b):
+        if j_ua[j] > u + break_px:
+            break
+        if pre[j] != 0 and _steps(j, stepped, window, min_n, step, z, floor, buf, tilt, done, j_x, j_seg, seg_row,
+                                  seg_j0, seg_j1, j_ua, j_la, j_lb, start, H, rows, tol_px):
+            return True
+    return False
 
 
 @njit(cache=True, nogil=True)
 def tilt_step_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_la, j_lb, H, W, rows, tol_px,
-                   break_rows, break_px, break_min, window, min_n, step, z, floor, pre):
+                   break_rows, break_px, break_min, window, min_n, step, z, floor, pre, tilt, done, stepped):
     """Junctions where a row crosses the depth-edge line of the rows around it with the boundaries'
     tilt stepping there (two surfaces welded in one segment where their stripes line up).
 
@@ -989,34 +1027,26 @@ def tilt_step_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_
     be the mixed boundary at the contact), at least ``min_n`` finite on each side, have medians
     more than ``step`` px per row apart and more than ``z`` times the sides' spread (1.4826 x the
     larger MAD, at least ``floor``): a tilt changing steadily along the row (a curved surface)
-    spreads each side as much as it moves the medians.  Returns (n_j,) uint8.
+    spreads each side as much as it moves the medians.  ``tilt`` (n_j,) float64, ``done`` and
+    ``stepped`` (n_j,) uint8: the caller's memo of the tilts followed (``done`` 1) and of each
+    junction's test (``stepped`` 0 not yet, 1 steps, 2 does not), kept over calls on the same
+    junctions and parameters (start with ``done`` and ``stepped`` 0).  Returns (n_j,) uint8.
     """
     nj = j_x.shape[0]
     cut = np.zeros(nj, np.uint8)
-    # the pixels within break_px of a segment end, and how many rows have one in each column (a
-    # column with fewer than break_min such rows has no candidate: most junctions stop there)
-    near = np.zeros((H, W), np.uint8)
+    # the pixels within break_px of a segment end (near_end) or of a junction cut already
+    # (near_pre: it parts its row there only where the tilt steps across it, tested when a
+    # candidate asks), and how many rows have either in each column (an upper bound of the parted
+    # rows: a column with fewer than break_min has no candidate, nor a segment spanning none)
+    near_end = np.zeros((H, W), np.uint8)
+    near_pre = np.zeros((H, W), np.uint8)
     col_rows = np.zeros(W, np.int32)
     for s in range(seg_row.shape[0]):
-        _mark_end(near, col_rows, seg_row[s], seg_u0[s], W, break_px)
-        _mark_end(near, col_rows, seg_row[s], seg_u1[s], W, break_px)
-    start = np.empty(0, np.int64)   # the tracks' tables, made at the first junction tested
-    tilt = np.empty(0, np.float64)
-    done = np.empty(0, np.uint8)
-    buf = np.empty(max(window, 1), np.float64)
+        _mark_end(near_end, near_pre, col_rows, seg_row[s], seg_u0[s], W, break_px)
+        _mark_end(near_end, near_pre, col_rows, seg_row[s], seg_u1[s], W, break_px)
     for j in range(pre.shape[0]):
-        if pre[j] == 0:
-            continue
-        if tilt.shape[0] == 0:
-            start = _row_junction_starts(j_seg, seg_row, H)
-            tilt = np.full(nj, np.nan)
-            done = np.zeros(nj, np.uint8)
-        s = j_seg[j]
-        _tilts_around(j, seg_j0[s], seg_j1[s], window, tilt, done, j_x, j_seg, seg_row, j_ua, j_la, j_lb, start, H,
-                      rows, tol_px)
-        if _tilt_step(tilt, seg_j0[s], seg_j1[s], j, window, min_n, step, z, floor, buf):
-            _mark_end(near, col_rows, seg_row[s], j_ua[j], W, break_px)
-    # columns with enough such rows, counted from the left (a segment spanning none is passed over)
+        if pre[j] != 0:
+            _mark_end(near_pre, near_end, col_rows, seg_row[j_seg[j]], j_ua[j], W, break_px)
     col_ok = np.zeros(W + 1, np.int32)
     for u in range(W):
         col_ok[u + 1] = col_ok[u] + (1 if col_rows[u] >= break_min else 0)
@@ -1025,7 +1055,9 @@ def tilt_step_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_
     csum = np.empty((H + 1, W), np.int16)
     csum[0] = 0
     for v in range(H):
-        _add_row(csum[v], near[v], csum[v + 1])
+        _add_row2(csum[v], near_end[v], near_pre[v], csum[v + 1])
+    start = np.empty(0, np.int64)   # the rows' first junctions, made at the first junction tested
+    buf = np.empty(max(window, 1), np.float64)
     for s in range(seg_j0.shape[0]):
         j0 = seg_j0[s]
         j1 = seg_j1[s]
@@ -1038,16 +1070,29 @@ def tilt_step_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_
         r1 = min(H, v + break_rows + 1)
         for i in range(j0 + min_n, j1 - min_n):
             u = j_ua[i]
-            if col_rows[u] < break_min or near[v, u] != 0:   # (a row parted here already: no weld)
+            if col_rows[u] < break_min or near_end[v, u] != 0:   # (a row parted here already: no weld)
                 continue
             if (np.int64(csum[r1, u]) - np.int64(csum[r0, u])) & 0xFFFF < break_min:
                 continue
-            if tilt.shape[0] == 0:
+            if start.shape[0] == 0:
                 start = _row_junction_starts(j_seg, seg_row, H)
-                tilt = np.full(nj, np.nan)
-                done = np.zeros(nj, np.uint8)
-            _tilts_around(i, j0, j1, window, tilt, done, j_x, j_seg, seg_row, j_ua, j_la, j_lb, start, H, rows,
-                          tol_px)
-            if _tilt_step(tilt, j0, j1, i, window, min_n, step, z, floor, buf):
+            if not _steps(i, stepped, window, min_n, step, z, floor, buf, tilt, done, j_x, j_seg, seg_row, seg_j0,
+                          seg_j1, j_ua, j_la, j_lb, start, H, rows, tol_px):
+                continue
+            if near_pre[v, u] != 0 and _pre_parts(v, u, pre, stepped, start, break_px, window, min_n, step, z,
+                                                  floor, buf, tilt, done, j_x, j_seg, seg_row, seg_j0, seg_j1, j_ua,
+                                                  j_la, j_lb, H, rows, tol_px):
+                continue
+            n = 0
+            for r in range(r0, r1):
+                if r == v:
+                    continue
+                if near_end[r, u] != 0:
+                    n += 1
+                elif near_pre[r, u] != 0 and _pre_parts(r, u, pre, stepped, start, break_px, window, min_n, step,
+                                                        z, floor, buf, tilt, done, j_x, j_seg, seg_row, seg_j0,
+                                                        seg_j1, j_ua, j_la, j_lb, H, rows, tol_px):
+                    n += 1
+            if n >= break_min:
                 cut[i] = 1
     return cut
