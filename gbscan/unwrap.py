@@ -420,6 +420,9 @@ class Segments:
     j_lb: np.ndarray
     j_rel: np.ndarray
     j_x: np.ndarray | None = None  # sub-pixel camera position of each junction (when known)
+    # the tilt-step cut's tracks and tests on these junctions (_tilt_cut_mask: kept for the
+    # decoder's retries, which unwrap the same step-1 segments again)
+    tilt_memo: tuple | None = field(default=None, repr=False, compare=False)
 
     @property
     def n(self) -> int:
@@ -700,12 +703,12 @@ def _tilt_cut_mask(segs: Segments, shape, p: "UnwrapParams", pre=None):
         return None
     # the tracks and tests done, kept on the segments: the decoder's retries unwrap the same
     # step-1 segments (and positions) again
-    memo = getattr(segs, "_tilt_memo", None)
+    memo = segs.tilt_memo
     key = (int(p.tilt_rows), int(p.tilt_window), float(p.tilt_step), float(p.tilt_z))
     if memo is None or memo[0] != key or memo[1] is not segs.j_x:
         n = segs.j_seg.size
         memo = (key, segs.j_x, np.full(n, np.nan), np.zeros(n, np.uint8), np.zeros(n, np.uint8))
-        segs._tilt_memo = memo
+        segs.tilt_memo = memo
     cut = kernels.tilt_step_cuts(segs.j_x, segs.j_seg, segs.row, segs.u0, segs.u1, segs.j0,
                                  segs.j1, segs.j_ua, segs.j_la, segs.j_lb, int(H), int(W), int(p.tilt_rows),
                                  _TILT_TRACK_PX, int(p.tilt_break_rows), _TILT_BREAK_PX, int(p.tilt_break_min),
