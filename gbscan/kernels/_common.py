@@ -1,4 +1,5 @@
-"""Colour classes of the decoder's label images and small row loops, shared by the kernel modules."""
+"""Colour classes of the decoder's label images and small row loops and helpers (least squares, a
+sorted search), shared by the kernel modules."""
 NONE, GREEN, BLUE, CYAN = 0, 1, 2, 3
 
 import numpy as np
@@ -73,3 +74,37 @@ def run_starts(row, rs):
             n += np.uint64(a[u] != b[u])
     rs[n] = W
     return np.int64(n)
+
+
+@njit(cache=True, nogil=True)
+def fit_add(acc, v, x):
+    """One point (``v``, ``x``) into the least-squares sums ``acc`` (5,) float64: n, sum v,
+    sum x, sum v^2, sum v x (start from zeros)."""
+    acc[0] += 1.0
+    acc[1] += v
+    acc[2] += x
+    acc[3] += v * v
+    acc[4] += v * x
+
+
+@njit(cache=True, nogil=True)
+def fit_slope(acc, min_n):
+    """The least-squares slope ``d x / d v`` of the sums of :func:`fit_add`; NaN with fewer than
+    ``min_n`` points or all at one ``v``."""
+    n = acc[0]
+    den = n * acc[3] - acc[1] * acc[1]
+    if n < min_n or not den > 0.0:
+        return np.nan
+    return (n * acc[4] - acc[1] * acc[2]) / den
+
+
+@njit(cache=True, nogil=True)
+def lower_bound(a, lo, hi, key):
+    """The first index in ``[lo, hi)`` of the ascending ``a`` with ``a[i] >= key`` (``hi`` if none)."""
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if a[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._common import ctz64, fill_row
+from ._common import ctz64, fill_row, fit_add, fit_slope, lower_bound
 
 
 # -- decoder: rim guard (gbscan.decode.rim_guard) --------------------------------------------------
@@ -782,26 +782,6 @@ def _next_row_matches(j_x, j_la, j_lb, a, b, c, e, tol_px, out):
 
 
 @njit(cache=True, nogil=True)
-def _fit_add(acc, v, x):
-    # one point (row offset v, position x) into the sums n, sum v, sum x, sum v^2, sum v x
-    acc[0] += 1.0
-    acc[1] += v
-    acc[2] += x
-    acc[3] += v * v
-    acc[4] += v * x
-
-
-@njit(cache=True, nogil=True)
-def _fit_slope(acc, min_rows):
-    # least-squares slope d x / d v of the sums; NaN with fewer than min_rows points
-    n = acc[0]
-    den = n * acc[3] - acc[1] * acc[1]
-    if n < min_rows or not den > 0.0:
-        return np.nan
-    return (n * acc[4] - acc[1] * acc[2]) / den
-
-
-@njit(cache=True, nogil=True)
 def junction_tilts(j_x, j_seg, seg_row, j_la, j_lb, H, rows, tol_px, min_rows):
     """The tilt of each located stripe boundary in the camera, ``d x / d v`` (camera px per row).
 
@@ -835,8 +815,8 @@ def junction_tilts(j_x, j_seg, seg_row, j_la, j_lb, H, rows, tol_px, min_rows):
                 m = nxt[m]
                 if m < 0:
                     break
-                _fit_add(acc, float(d * k), j_x[m] - x0)
-        out[j] = _fit_slope(acc, min_rows)
+                fit_add(acc, float(d * k), j_x[m] - x0)
+        out[j] = fit_slope(acc, min_rows)
     return out
 
 
@@ -898,15 +878,7 @@ def _match_in_row(j_x, j_ua, j_la, j_lb, a, b, x, uw, la, lb, tol_px):
     # the located junction of row range [a, b) with labels (la, lb) nearest the position x, within
     # tol_px; -1 if none.  uw: x in the tables' pixel columns (a decoded window's j_x are the
     # frame's), found +-2 px (a junction lies between its runs' pixels j_ua and j_ub <= j_ua + 2)
-    lo = a
-    hi = b
-    key = uw - tol_px - 2.0
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if j_ua[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
+    lo = lower_bound(j_ua, a, b, uw - tol_px - 2.0)
     best = -1
     bestd = tol_px
     k = lo
@@ -941,8 +913,8 @@ def _track_tilt(j, j_x, j_seg, seg_row, j_ua, j_la, j_lb, start, H, rows, tol_px
             if m < 0:
                 break
             x = j_x[m]
-            _fit_add(acc, float(d * k), x - x0)
-    return _fit_slope(acc, min_rows)
+            fit_add(acc, float(d * k), x - x0)
+    return fit_slope(acc, min_rows)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -989,17 +961,8 @@ def _pre_parts(r, u, pre, stepped, start, break_px, window, min_n, step, z, floo
                seg_row, seg_j0, seg_j1, j_ua, j_la, j_lb, H, rows, tol_px):
     # does a junction of row r cut already, within break_px of column u, part its row: the tilt
     # steps across it (each tested once)
-    a = start[r]
     b = start[r + 1]
-    lo = a
-    hi = b
-    while lo < hi:   # the row's first junction at or right of u - break_px
-        mid = (lo + hi) // 2
-        if j_ua[mid] < u - break_px:
-            lo = mid + 1
-        else:
-            hi = mid
-    for j in range(lo, b):
+    for j in range(lower_bound(j_ua, start[r], b, u - break_px), b):   # (at or right of u - break_px)
         if j_ua[j] > u + break_px:
             break
         if pre[j] != 0 and _steps(j, stepped, window, min_n, step, z, floor, buf, tilt, done, j_x, j_seg, seg_row,

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._common import BLUE, CYAN, GREEN, NONE, copy_row, fill_row, run_starts
+from ._common import BLUE, CYAN, GREEN, NONE, copy_row, fill_row, fit_add, fit_slope, run_starts
 
 
 @njit(cache=True, nogil=True)
@@ -1312,10 +1312,10 @@ def component_marker_counts(comp, relative, labels, comp_shift, take, is_marker)
 
 
 @njit(cache=True, nogil=True)
-def _gradient_step(comp, col_rel, col_abs, c, u, v, rows):
+def _gradient_step(comp, col_rel, col_abs, c, u, v, rows, acc):
     # (d column / d v in the component minus in the reported pixels at the vote (v, u) of
     # component c, the side of the reported pixels: 0 above, 1 below); see stripe_gradient_jumps.
-    # The difference is NaN where either side has fewer than 3 rows
+    # The difference is NaN where either side has fewer than 3 rows.  acc: (5,) float64 scratch
     H = comp.shape[0]
     d = 1
     if v >= 2 and not np.isnan(col_abs[v - 1, u]) and not np.isnan(col_abs[v - 2, u]):
@@ -1323,11 +1323,7 @@ def _gradient_step(comp, col_rel, col_abs, c, u, v, rows):
     where = 0 if d < 0 else 1
     g0 = 0.0
     for side in range(2):
-        sx = 0.0
-        sy = 0.0
-        sxx = 0.0
-        sxy = 0.0
-        m = 0
+        acc[:] = 0.0
         for j in range(rows + 1):
             q = v - d * j if side == 0 else v + d * (j + 1)
             if q < 0 or q >= H:
@@ -1340,15 +1336,10 @@ def _gradient_step(comp, col_rel, col_abs, c, u, v, rows):
                 y = col_abs[q, u]
             if np.isnan(y):
                 break
-            x = float(q)
-            sx += x
-            sy += y
-            sxx += x * x
-            sxy += x * y
-            m += 1
-        if m < 3:
+            fit_add(acc, float(q), y)
+        g = fit_slope(acc, 3)
+        if np.isnan(g):
             return np.nan, where
-        g = (m * sxy - sx * sy) / (m * sxx - sx * sx)
         if side == 0:
             g0 = g
         else:
@@ -1374,9 +1365,10 @@ def stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows):
     n = vc.shape[0]
     out = np.full(n, np.nan)
     where = np.full(n, -1, np.int8)
+    acc = np.zeros(5)
     for i in range(n):
         if vl[i] >= 0 and slot[vc[i]] >= 0:
-            g, w = _gradient_step(comp, col_rel, col_abs, vc[i], vl[i], vv[i], rows)
+            g, w = _gradient_step(comp, col_rel, col_abs, vc[i], vl[i], vv[i], rows, acc)
             out[i] = g
             if not np.isnan(g):
                 where[i] = w
@@ -1411,6 +1403,7 @@ def gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot, o
     diff = np.full(n, np.nan)
     key = np.full(n, -1, np.int64)
     cnt = np.zeros(2 * n_slot + 1, np.int64)
+    acc = np.zeros(5)
     for i in range(n):
         c = vc[i]
         if not good[i] or vl[i] < 0:
@@ -1418,7 +1411,7 @@ def gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot, o
         k = slot[c]
         if k < 0 or vk[i] != offset[k]:
             continue
-        g, w = _gradient_step(comp, col_rel, col_abs, c, vl[i], vv[i], rows)
+        g, w = _gradient_step(comp, col_rel, col_abs, c, vl[i], vv[i], rows, acc)
         if not np.isnan(g):
             diff[i] = g
             key[i] = 2 * k + w
