@@ -2034,6 +2034,9 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     if split is not None:
         un, idx, split_gain = split
     n_reg = int(un.region_px.size)
+    # a region whose markers do not fit because a strip of another surface is welded in beside
+    # it: indexed without the stretches that contradict it (which the pass below then reports)
+    idx, peeled = uw.peel_conflicts(cls.labels, un, idx, pattern, params.unwrap, cls.gn, cls.bn, stripe_range)
     # stretches of rows whose own markers contradict their region's offset (a surface welded in
     # across a depth edge): reported as unindexed.  finish_pixels keeps any non-zero input reason.
     _mark_spans(cls.reason, uw.marker_conflicts(cls.labels, un, idx, pattern, params.unwrap, cls.gn, cls.bn),
@@ -2164,6 +2167,8 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     stats["fit_alt_boundaries"] = 2 * int(params.boundary_fit_alt_half) + 1
     stats["fit_alt_regions"] = int(np.count_nonzero(fit_alt))
     stats["weld_retry_px"], stats["weld_split_px"] = retry_gain, split_gain
+    # regions indexed once the stretches their markers contradict were taken out (peel_conflicts)
+    stats["regions_peeled"], stats["peeled_px"] = int(np.count_nonzero(peeled)), int(peeled.sum())
     # of the "rim" pixels: masked by the guard rows (rim_guard) and by the brightness-step guard
     stats["rim_guard_px"], stats["rim_step_px"] = int(n_guard), int(n_step)
     stats["transitions_joined"] = int(joined.size)

@@ -282,6 +282,17 @@ class UnwrapParams:
         2560x1920 (``scripts/resample_study.py``, the multi-object scene shrunk by 4): a region
         of 46 381 shrunk px whose rows 150-293 fit offset 24 and rows 294-425 offset 48 was
         dropped whole (47.1 % of the scene reported; 82.7 % split, none wrong off depth edges).
+    peel_max_frac : a region of at least ``retry_min_px`` pixels whose markers do not fit the
+        pattern may be one surface with a strip of another welded in beside it, along a
+        slanted silhouette that neither the row cuts nor :func:`split_row` separate.
+        :func:`peel_conflicts` takes the row stretches whose own markers contradict the region's
+        best offset (:func:`marker_conflicts`, as for an indexed region) out of it and scores the
+        rest again: when the rest passes every test of :func:`index_regions` at the same offset
+        and the stretches hold at most ``peel_max_frac`` of the region's pixels, the region is
+        indexed (why ``peeled``) and the stretches are reported unindexed (0: never peel).
+        Found at a 175 mm baseline (the multi-object scene): the sphere (16 000 px) welded along
+        its lower right rim to 15 rows of the wall, 22 stripes apart, was dropped whole
+        (mismatch 5.9 % of the evidence against ``max_mismatch`` 5 %).
     """
 
     n_ref_pixels: int = 4
@@ -336,6 +347,7 @@ class UnwrapParams:
     retry_spacing_ratio: float = 1.2
     retry_min_px: int = 1000
     split_rows: int = 3
+    peel_max_frac: float = 0.25
 
     def __post_init__(self):
         for name in ("n_ref_pixels", "n_ref_rows", "min_region_px", "min_markers", "conflict_run_px",
@@ -382,6 +394,9 @@ class UnwrapParams:
             raise GBError(f"UnwrapParams.retry_min_px must be >= 1, got {self.retry_min_px}")
         if int(self.split_rows) < 0:
             raise GBError(f"UnwrapParams.split_rows must be >= 0 (0: never split a region), got {self.split_rows}")
+        if not 0.0 <= float(self.peel_max_frac) < 1.0:
+            raise GBError(f"UnwrapParams.peel_max_frac must be in [0, 1) (0: never peel a region), got "
+                          f"{self.peel_max_frac}")
         if not (float(self.bridge_ratio) == 0.0 or float(self.bridge_ratio) > 1.0):
             raise GBError(f"UnwrapParams.bridge_ratio must be > 1 (a spacing factor) or 0 (disabled), got "
                           f"{self.bridge_ratio}")
@@ -1118,6 +1133,64 @@ def marker_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, patter
                                           int(params.conflict_events),
                                           float(params.conflict_clean_level) if clean else 0.0,
                                           bool(params.conflict_confirm))
+
+
+#: RegionIndex.why of a region indexed once the row stretches its markers contradict were taken out
+PEELED = "peeled"
+
+
+def peel_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, pattern: PatternSpec,
+                   params: UnwrapParams = UnwrapParams(), gn: np.ndarray | None = None,
+                   bn: np.ndarray | None = None, stripe_range: np.ndarray | None = None) -> tuple:
+    """Index the regions whose markers do not fit the pattern once the stretches of rows that
+    contradict their best offset are taken out (``UnwrapParams.peel_max_frac``).
+
+    For every region of at least ``retry_min_px`` pixels left unindexed as :data:`MISFIT`, the
+    stretches :func:`marker_conflicts` rejects with the region taken at its best offset (``gn``,
+    ``bn`` as there) are removed from it and the rest is scored again by :func:`index_regions`
+    (``stripe_range`` as there).  A region is indexed when the rest passes every test at the
+    *same* offset and the stretches hold at most ``peel_max_frac`` of its pixels; its ``why``
+    becomes :data:`PEELED` and its evidence, mismatch and runner-up the rest's.  The stretches
+    stay in the region: the decoder's own :func:`marker_conflicts` pass, which sees the same
+    segments and offset, reports them unindexed.
+
+    Returns ``(RegionIndex, peeled)``: a new index (``idx`` itself when nothing is peeled) and
+    the (n_regions,) int64 pixels taken out of each region indexed so (0 elsewhere).
+    """
+    n_reg = int(idx.indexed.size)
+    peeled = np.zeros(n_reg, np.int64)
+    frac = float(params.peel_max_frac)
+    if frac <= 0 or not pattern.markers or n_reg == 0:
+        return idx, peeled
+    px = np.asarray(un.region_px)
+    cand = np.array([(not idx.indexed[k]) and idx.why[k] == MISFIT and px[k] >= params.retry_min_px
+                     for k in range(n_reg)], bool)
+    if not cand.any():
+        return idx, peeled
+    forced = RegionIndex(idx.offset, cand, idx.markers_seen, idx.evidence, idx.mismatch, idx.runner_up, idx.why)
+    spans = marker_conflicts(labels, un, forced, pattern, params, gn, bn)
+    if spans.size == 0:
+        return idx, peeled
+    # the stretches' pixels of the candidates (spans may overlap); everything else scores as -1
+    lut = np.full(n_reg + 1, -1, np.int32)
+    lut[:-1][cand] = np.flatnonzero(cand)
+    rest = lut[un.region]                   # (region -1 -> the last entry, -1)
+    out = spans_mask(spans, rest.shape) & (rest >= 0)
+    gone = np.bincount(rest[out], minlength=n_reg).astype(np.int64)
+    rest[out] = -1
+    again = index_regions(labels, un.relative, rest, n_reg, pattern, params, stripe_range)
+    take = cand & again.indexed & (again.offset == idx.offset) & (gone > 0) & (gone <= frac * px)
+    if not take.any():
+        return idx, peeled
+    new = RegionIndex(idx.offset.copy(), idx.indexed.copy(), idx.markers_seen.copy(), idx.evidence.copy(),
+                      idx.mismatch.copy(), idx.runner_up.copy(), list(idx.why))
+    for k in np.flatnonzero(take):
+        new.indexed[k] = True
+        new.markers_seen[k], new.evidence[k] = again.markers_seen[k], again.evidence[k]
+        new.mismatch[k], new.runner_up[k] = again.mismatch[k], again.runner_up[k]
+        new.why[k] = PEELED
+        peeled[k] = gone[k]
+    return new, peeled
 
 
 def _same_maps(where: str, **maps) -> None:

@@ -1392,6 +1392,62 @@ def test_split_row_refuses_what_is_no_contact_of_two_surfaces():
     assert uw.split_row(bad, rel, region, 0, spec) is None
 
 
+@pytest.mark.parametrize("rows_welded", [10, 16])
+def test_peel_conflicts_indexes_a_region_without_its_welded_in_strip(rows_welded):
+    """A strip of another surface welded in beside a region along its last rows (12 stripes off
+    from stripe 20 on): from 10 welded rows the region's markers mismatch more than
+    ``max_mismatch`` and it is left unindexed whole (:data:`MISFIT`).  Without the stretches
+    :func:`marker_conflicts` rejects at the best offset the rest fits it exactly: indexed
+    (``peeled``), and every wrongly indexed pixel lies in the stretches taken out, which the
+    decoder then reports unindexed."""
+    spec = PatternSpec()
+    lab = welded_image(spec, rows_welded=rows_welded)
+    un = uw.unwrap(lab)
+    idx = uw.index_regions(lab, un.relative, un.region, un.region_px.size, spec)
+    assert un.region_px.size == 1 and not idx.indexed[0] and idx.why[0] == uw.MISFIT
+    p = uw.UnwrapParams(retry_min_px=1000)
+    new, peeled = uw.peel_conflicts(lab, un, idx, spec, p)
+    assert new.indexed[0] and new.why[0] == uw.PEELED and new.offset[0] == idx.offset[0] == -un.relative[0, 0]
+    assert new.mismatch[0] == 0 and new.evidence[0] < idx.evidence[0]
+    assert not idx.indexed[0] and idx.why[0] == uw.MISFIT          # the input is left as it was
+    bad = uw.spans_mask(uw.marker_conflicts(lab, un, new, spec, p), lab.shape)
+    assert peeled[0] == bad.sum() == rows_welded * 3 * (45 - 16)  # from the last agreeing marker (16) on
+    truth = np.concatenate([np.arange(20), np.arange(32, 57)]).repeat(3)
+    wrong = np.zeros(lab.shape, bool)
+    wrong[60:] = (un.relative + new.offset[0])[60:] != truth[None]
+    assert wrong.any() and bad[wrong].all() and not bad[:60].any()
+
+
+def test_peel_conflicts_refuses_what_it_should_not_index():
+    spec = PatternSpec()
+    lab = welded_image(spec, rows_welded=20)             # 1740 of 10 800 px (16 %) in the stretches
+    un = uw.unwrap(lab)
+    idx = uw.index_regions(lab, un.relative, un.region, un.region_px.size, spec)
+    for p in (uw.UnwrapParams(peel_max_frac=0.0),        # off
+              uw.UnwrapParams(peel_max_frac=0.15),       # more than that fraction would be taken out
+              uw.UnwrapParams(retry_min_px=20000)):      # a region under retry_min_px
+        new, peeled = uw.peel_conflicts(lab, un, idx, spec, p)
+        assert new is idx and not peeled.any()
+    assert uw.peel_conflicts(lab, un, idx, spec, uw.UnwrapParams(peel_max_frac=0.17))[0].indexed[0]
+    # the pure pattern has no markers; an indexed region is left alone
+    assert uw.peel_conflicts(lab, un, idx, PatternSpec(markers=False))[0] is idx
+    ok = welded_image(spec, rows_welded=3)
+    un3 = uw.unwrap(ok)
+    idx3 = uw.index_regions(ok, un3.relative, un3.region, 1, spec)
+    assert idx3.indexed[0] and uw.peel_conflicts(ok, un3, idx3, spec)[0] is idx3
+    # as many welded rows as clean ones: the stretches hold 32 % of the region, more than 25 %
+    half = welded_image(spec, rows_welded=60)
+    un2 = uw.unwrap(half)
+    idx2 = uw.index_regions(half, un2.relative, un2.region, un2.region_px.size, spec)
+    assert un2.region_px.size == 1 and idx2.why[0] == uw.MISFIT
+    assert uw.peel_conflicts(half, un2, idx2, spec)[0] is idx2
+    assert uw.peel_conflicts(half, un2, idx2, spec, uw.UnwrapParams(peel_max_frac=0.33))[0].indexed[0]
+    with pytest.raises(GBError, match="peel_max_frac"):
+        uw.UnwrapParams(peel_max_frac=1.0)
+    with pytest.raises(GBError, match="peel_max_frac"):
+        uw.UnwrapParams(peel_max_frac=-0.1)
+
+
 def test_split_rows_and_sever_px_are_validated():
     with pytest.raises(GBError, match="split_rows"):
         uw.UnwrapParams(split_rows=-1)
