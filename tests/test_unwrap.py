@@ -1425,10 +1425,13 @@ def test_peel_conflicts_refuses_what_it_should_not_index():
     idx = uw.index_regions(lab, un.relative, un.region, un.region_px.size, spec)
     for p in (uw.UnwrapParams(peel_max_frac=0.0),        # off
               uw.UnwrapParams(peel_max_frac=0.15),       # more than that fraction would be taken out
-              uw.UnwrapParams(retry_min_px=20000)):      # a region under retry_min_px
+              uw.UnwrapParams(retry_min_px=20000),       # a region under retry_min_px
+              uw.UnwrapParams(peel_min_markers=10)):     # the rest shows 9 marker stripes
         new, peeled = uw.peel_conflicts(lab, un, idx, spec, p)
         assert new is idx and not peeled.any()
     assert uw.peel_conflicts(lab, un, idx, spec, uw.UnwrapParams(peel_max_frac=0.17))[0].indexed[0]
+    new = uw.peel_conflicts(lab, un, idx, spec, uw.UnwrapParams(peel_min_markers=9))[0]
+    assert new.indexed[0] and new.markers_seen[0] == 9 and idx.markers_seen[0] == 12
     # the pure pattern has no markers; an indexed region is left alone
     assert uw.peel_conflicts(lab, un, idx, PatternSpec(markers=False))[0] is idx
     ok = welded_image(spec, rows_welded=3)
@@ -1446,6 +1449,8 @@ def test_peel_conflicts_refuses_what_it_should_not_index():
         uw.UnwrapParams(peel_max_frac=1.0)
     with pytest.raises(GBError, match="peel_max_frac"):
         uw.UnwrapParams(peel_max_frac=-0.1)
+    with pytest.raises(GBError, match="peel_min_markers"):
+        uw.UnwrapParams(peel_min_markers=0)
 
 
 def test_split_rows_and_sever_px_are_validated():
