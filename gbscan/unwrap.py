@@ -295,6 +295,13 @@ class UnwrapParams:
         none contradicts nothing and stays in.  Measured with regions down to 300 px peeled: a
         face region of 885 px (3 markers seen) whose majority, 609 px, lay 4 stripes from the
         offset its markers chose was peeled of 57 px and indexed with 403 wrong pixels.
+    peel_margin : the rest's runner-up offset must mismatch more than its best by this many times
+        the indexing's margin (``index_margin`` / ``index_margin_events``): a region already found
+        inconsistent must win clearly.  Measured over the sweep cache (lossless, JPEG q95 4:4:4
+        and q90 4:2:0) and the baselines set: the regions the peel indexed right won by 1.33-4.77
+        margins, the wrong ones by 1.12-1.26 (a q90 4:2:0 frame of the multi-object scene:
+        2 589 px, 4 markers, every kept pixel wrong, 1 443 wrong pixels in all with its linked
+        neighbours); 2 refuses every wrong one and the right one at 1.33 (JPEG).
         Found at a 175 mm baseline (the multi-object scene): the sphere (16 000 px) welded along
         its lower right rim to 15 rows of the wall, 22 stripes apart, was dropped whole
         (mismatch 5.9 % of the evidence against ``max_mismatch`` 5 %).
@@ -354,6 +361,7 @@ class UnwrapParams:
     split_rows: int = 3
     peel_max_frac: float = 0.25
     peel_min_markers: int = 4
+    peel_margin: float = 2.0
 
     def __post_init__(self):
         for name in ("n_ref_pixels", "n_ref_rows", "min_region_px", "min_markers", "conflict_run_px",
@@ -400,6 +408,9 @@ class UnwrapParams:
             raise GBError(f"UnwrapParams.retry_min_px must be >= 1, got {self.retry_min_px}")
         if int(self.split_rows) < 0:
             raise GBError(f"UnwrapParams.split_rows must be >= 0 (0: never split a region), got {self.split_rows}")
+        if not float(self.peel_margin) >= 1.0:
+            raise GBError(f"UnwrapParams.peel_margin must be >= 1 (times the indexing's margin), got "
+                          f"{self.peel_margin}")
         if int(self.peel_min_markers) < 1:
             raise GBError(f"UnwrapParams.peel_min_markers must be >= 1, got {self.peel_min_markers}")
         if not 0.0 <= float(self.peel_max_frac) < 1.0:
@@ -1157,8 +1168,9 @@ def peel_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, pattern:
     stretches :func:`marker_conflicts` rejects with the region taken at its best offset (``gn``,
     ``bn`` as there) are removed from it and the rest is scored again by :func:`index_regions`
     (``stripe_range`` as there).  A region is indexed when the rest passes every test at the
-    *same* offset showing at least ``peel_min_markers`` marker stripes, and the stretches hold at
-    most ``peel_max_frac`` of its pixels; its ``why``
+    *same* offset showing at least ``peel_min_markers`` marker stripes, with its runner-up
+    ``peel_margin`` times the indexing's margin behind, and the stretches hold at most
+    ``peel_max_frac`` of its pixels; its ``why``
     becomes :data:`PEELED` and its evidence, mismatch and runner-up the rest's.  The stretches
     stay in the region: the decoder's own :func:`marker_conflicts` pass, which sees the same
     segments and offset, reports them unindexed.
@@ -1188,8 +1200,10 @@ def peel_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, pattern:
     gone = np.bincount(rest[out], minlength=n_reg).astype(np.int64)
     rest[out] = -1
     again = index_regions(labels, un.relative, rest, n_reg, pattern, params, stripe_range)
+    margin = _margin_px(params, again.evidence, again.markers_seen)
     take = cand & again.indexed & (again.offset == idx.offset) & (gone > 0) & (gone <= frac * px) \
-        & (again.markers_seen >= params.peel_min_markers)
+        & (again.markers_seen >= params.peel_min_markers) \
+        & (again.runner_up - again.mismatch >= params.peel_margin * margin)
     if not take.any():
         return idx, peeled
     new = RegionIndex(idx.offset.copy(), idx.indexed.copy(), idx.markers_seen.copy(), idx.evidence.copy(),

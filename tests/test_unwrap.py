@@ -923,7 +923,8 @@ def _abs_row_reference(column_rel, region, reg_off, v, out, weight):
 
 
 @njit(nogil=True)
-def _rim_mask_reference(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, rim_code, pull_out):
+def _rim_mask_reference(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, rim_code, pull_out,
+                        end_isolated=False):
     """``kernels.rim_mask`` as it was (per-pixel branches, in-place rows): the reference."""
     H, W = column_rel.shape
     want = pull_out.shape[0] == H and pull_out.shape[1] == W
@@ -981,6 +982,8 @@ def _rim_mask_reference(column_rel, region, reg_off, reason, half_px, max_pull_p
                         cx = reason[v, x]
                         if x != u and cx >= 1 and cx <= 3:
                             near_dark = True
+                        if end_isolated and abs(x - u) == 1 and cx == 0 and region[v, x] < 0:
+                            near_dark = True    # a striped pixel no region holds, next to it
                         if column_rel[v, x] != column_rel[v, x]:
                             at_end = True
                     rim = at_end and near_dark
@@ -1012,22 +1015,51 @@ def test_rim_mask_equals_its_per_pixel_form(name, monkeypatch):
     assert calls, "the decoder must call the rim rule"
     n_masked = 0
     for args in calls:
-        col, reg, off, reason, half, pull, end, code, _ = args
+        col, reg, off, reason, half, pull, end, code, _, iso = args
+        assert iso is True                              # the decoder's default
         H, W = reason.shape
         for half2, pull2, end2, code2, want in ((half, pull, end, code, False), (half, pull, end, code, True),
                                                 (half, 0.0, end, code, False), (half, pull, 0, code, False),
                                                 (half, pull, 2, code, True), (1, 0.3, 3, 2, False),
                                                 (0, pull, end, 1, False)):
-            r_new, r_ref = reason.copy(), reason.copy()
-            p_new = np.full((H, W) if want else (0, 0), -7.0, np.float32)
-            p_ref = p_new.copy()
-            n_new = real(col, reg, off, r_new, half2, pull2, end2, code2, p_new)
-            n_ref = _rim_mask_reference(col, reg, off, r_ref, half2, pull2, end2, code2, p_ref)
-            assert n_new == n_ref
-            np.testing.assert_array_equal(r_new, r_ref)
-            np.testing.assert_array_equal(p_new, p_ref)
-            n_masked += n_new
+            for iso2 in (True, False):
+                r_new, r_ref = reason.copy(), reason.copy()
+                p_new = np.full((H, W) if want else (0, 0), -7.0, np.float32)
+                p_ref = p_new.copy()
+                n_new = real(col, reg, off, r_new, half2, pull2, end2, code2, p_new, iso2)
+                n_ref = _rim_mask_reference(col, reg, off, r_ref, half2, pull2, end2, code2, p_ref, iso2)
+                assert n_new == n_ref
+                np.testing.assert_array_equal(r_new, r_ref)
+                np.testing.assert_array_equal(p_new, p_ref)
+                n_masked += n_new
     assert n_masked > 100  # the rules did mask pixels
+
+
+def test_rim_mask_end_rule_masks_a_stretch_end_beside_a_striped_pixel_no_region_holds():
+    """``end_isolated``: the last pixel of a row's stretch whose next pixel has signal (reason 0)
+    but no region is masked, and only that one (not the second pixel within ``end_px``); a
+    neighbour of another region, or none (the stretch simply ending in a dark pixel's place with
+    reason 0 and a region), does not count."""
+    from gbscan import kernels
+
+    W = 12
+    col = np.full((1, W), np.nan, np.float32)
+    col[0, 2:8] = np.arange(6, dtype=np.float32) * 3.0
+    region = np.full((1, W), -1, np.int32)
+    region[0, 2:8] = 0
+    none = np.zeros((0, 0), np.float32)
+    for iso, other, want in ((True, -1, [7]), (False, -1, []), (True, 1, [])):
+        reg = region.copy()
+        reg[0, 8] = other                   # the pixel after the stretch (reason 0: it has signal)
+        reason = np.zeros((1, W), np.uint8)
+        reason[0, :2] = 1                   # dark before the stretch: its first two pixels go as ever
+        n = kernels.rim_mask(col, reg, np.zeros(2, np.float32), reason, 1, 0.0, 2, 8, none, iso)
+        assert sorted(np.flatnonzero(reason[0] == 8)) == [2, 3] + want, (iso, other)
+        assert n == 2 + len(want)
+        r_ref = np.zeros((1, W), np.uint8)
+        r_ref[0, :2] = 1
+        assert _rim_mask_reference(col, reg, np.zeros(2, np.float32), r_ref, 1, 0.0, 2, 8, none, iso) == n
+        np.testing.assert_array_equal(r_ref, reason)
 
 
 def test_rim_mask_equals_its_per_pixel_form_on_random_rows():
@@ -1049,15 +1081,16 @@ def test_rim_mask_equals_its_per_pixel_form_on_random_rows():
         reason = rng.choice(np.array([0, 0, 0, 1, 2, 3, 5], np.uint8), size=(H, W))
         for half, pull, end, code, want in ((2, 0.7, 2, 8, False), (1, 0.3, 1, 8, True), (0, 2.0, 3, 2, True),
                                             (3, 0.0, 1, 1, False), (2, 0.5, 0, 8, False)):
-            r_new, r_ref = reason.copy(), reason.copy()
-            p_new = np.full((H, W) if want else (0, 0), -7.0, np.float32)
-            p_ref = p_new.copy()
-            n_new = kernels.rim_mask(col, region, off, r_new, half, pull, end, code, p_new)
-            n_ref = _rim_mask_reference(col, region, off, r_ref, half, pull, end, code, p_ref)
-            assert n_new == n_ref, (trial, half, pull, end, code)
-            np.testing.assert_array_equal(r_new, r_ref)
-            np.testing.assert_array_equal(p_new, p_ref)
-            n_masked += n_new
+            for iso in (True, False):
+                r_new, r_ref = reason.copy(), reason.copy()
+                p_new = np.full((H, W) if want else (0, 0), -7.0, np.float32)
+                p_ref = p_new.copy()
+                n_new = kernels.rim_mask(col, region, off, r_new, half, pull, end, code, p_new, iso)
+                n_ref = _rim_mask_reference(col, region, off, r_ref, half, pull, end, code, p_ref, iso)
+                assert n_new == n_ref, (trial, half, pull, end, code, iso)
+                np.testing.assert_array_equal(r_new, r_ref)
+                np.testing.assert_array_equal(p_new, p_ref)
+                n_masked += n_new
     assert n_masked > 200
 
 
@@ -1426,11 +1459,12 @@ def test_peel_conflicts_refuses_what_it_should_not_index():
     for p in (uw.UnwrapParams(peel_max_frac=0.0),        # off
               uw.UnwrapParams(peel_max_frac=0.15),       # more than that fraction would be taken out
               uw.UnwrapParams(retry_min_px=20000),       # a region under retry_min_px
-              uw.UnwrapParams(peel_min_markers=10)):     # the rest shows 9 marker stripes
+              uw.UnwrapParams(peel_min_markers=10),      # the rest shows 9 marker stripes
+              uw.UnwrapParams(peel_margin=4.7)):         # its runner-up is 4.6 margins behind
         new, peeled = uw.peel_conflicts(lab, un, idx, spec, p)
         assert new is idx and not peeled.any()
     assert uw.peel_conflicts(lab, un, idx, spec, uw.UnwrapParams(peel_max_frac=0.17))[0].indexed[0]
-    new = uw.peel_conflicts(lab, un, idx, spec, uw.UnwrapParams(peel_min_markers=9))[0]
+    new = uw.peel_conflicts(lab, un, idx, spec, uw.UnwrapParams(peel_min_markers=9, peel_margin=4.5))[0]
     assert new.indexed[0] and new.markers_seen[0] == 9 and idx.markers_seen[0] == 12
     # the pure pattern has no markers; an indexed region is left alone
     assert uw.peel_conflicts(lab, un, idx, PatternSpec(markers=False))[0] is idx
@@ -1451,6 +1485,8 @@ def test_peel_conflicts_refuses_what_it_should_not_index():
         uw.UnwrapParams(peel_max_frac=-0.1)
     with pytest.raises(GBError, match="peel_min_markers"):
         uw.UnwrapParams(peel_min_markers=0)
+    with pytest.raises(GBError, match="peel_margin"):
+        uw.UnwrapParams(peel_margin=0.5)
 
 
 def test_split_rows_and_sever_px_are_validated():

@@ -806,7 +806,7 @@ def _end_need(gap, e, roww, flag, near, need):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, rim_code, pull_out):
+def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, rim_code, pull_out, end_isolated):
     """Mask ``rim_code`` into ``reason`` (H, W) uint8, in place where it is 0, where a column is
     unreliable near a silhouette or bend (see :func:`gbscan.decode.rim_rule`); returns the count.
 
@@ -817,7 +817,9 @@ def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, 
       decoder's along-stripe Gaussian when ``half_px ~ sqrt(3) sigma``), by running sums.
     * *end*: at most ``end_px`` (0: off) px from the end of the pixel's row stretch of columns
       and as close to a pixel whose reason is 1..3 (no signal: dark, saturated, low contrast) or
-      to the image's left or right side (nothing measured beyond).
+      to the image's left or right side (nothing measured beyond); with ``end_isolated`` also
+      when the next pixel along the row has reason 0 but no region (a striped pixel no region
+      holds: a fragment of another surface, reported "isolated" later).
     ``pull_out`` (H, W) float32 receives ``M[c] - c`` (pass a (0, 0) array to skip).
     Row-major with per-image-column accumulators; no image-size temporaries.  Per row: the pull
     test branch-free over the row, the end test's window only where the window is not all
@@ -911,9 +913,12 @@ def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, 
                     # 2 px of it)
                     at_end = u - end_px < 0 or u + end_px >= W
                     near_dark = at_end
+                    rg = region[v]
                     for x in range(max(u - end_px, 0), min(u + end_px, W - 1) + 1):
                         cx = rsn[x]
                         if x != u and cx >= 1 and cx <= 3:
+                            near_dark = True
+                        elif end_isolated and cx == 0 and rg[x] < 0 and (x == u - 1 or x == u + 1):
                             near_dark = True
                         if crel[x] != crel[x]:
                             at_end = True
