@@ -23,6 +23,13 @@ kernels on its first use (about a minute and a half here) and caches them there;
 at once.  One thread (numba and OpenCV), glibc's freed memory kept (:mod:`gbscan.heap`), frames
 rendered by the simulator at 640x480 (the paper's rig; ``--width 1280`` for 1280x1024) with the
 same scenes as ``scripts/bench_decode.py``.
+
+Two compiled copies of the kernels in one process are outside what numba promises: with
+``--base 42fb9bd`` (2026-11-28) the checkout's first ``link_components`` call segfaults once the
+base has decoded a head frame (the checkout decoding first, or ``--base a279d7d``, run fine; each
+version alone runs fine, and a bounds-checked build of the checkout reads and writes nothing out
+of bounds on the frames that exercise this session's rules).  If a base crashes the script, take
+a neighbouring revision.
 """
 from __future__ import annotations
 
