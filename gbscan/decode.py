@@ -1867,8 +1867,7 @@ def _retry_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1=
     if p.retry_spacing_ratio <= 0 or not pattern.markers or not len(idx.why):
         return None
     # markers that contradict each other (often a weld of two surfaces)
-    failed = np.array([(not ok) and why in (uw.MISFIT, uw.AMBIGUOUS) and px >= p.retry_min_px
-                       for ok, why, px in zip(idx.indexed, idx.why, un.region_px)], bool)
+    failed = uw.failed_regions(idx, un.region_px, p.retry_min_px, (uw.MISFIT, uw.AMBIGUOUS))
     if not failed.any():
         return None
     lut = np.zeros(failed.size + 1, bool)
@@ -1890,10 +1889,8 @@ def _split_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1=
     if p.split_rows <= 0 or not pattern.markers or not len(idx.why):
         return None
     sever = None
-    for k in range(len(idx.why)):
-        if idx.indexed[k] or idx.why[k] != uw.MISFIT or un.region_px[k] < p.retry_min_px:
-            continue
-        v = uw.split_row(cls.labels, un.relative, un.region, k, pattern, p)
+    for k in np.flatnonzero(uw.failed_regions(idx, un.region_px, p.retry_min_px)):
+        v = uw.split_row(cls.labels, un.relative, un.region, int(k), pattern, p)
         if v is None:
             continue
         if sever is None:

@@ -53,6 +53,7 @@ then checks the linked regions' rows with :func:`marker_conflicts` too.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -1159,6 +1160,15 @@ def marker_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, patter
 PEELED = "peeled"
 
 
+def failed_regions(idx: RegionIndex, region_px, min_px: int, whys=(MISFIT,)) -> np.ndarray:
+    """(n_regions,) bool: the regions of at least ``min_px`` pixels (``region_px`` per region) that
+    the indexing left unindexed for one of the reasons ``whys`` -- those the decoder gives a
+    second chance (its retry with finer cuts, the split at a contact row, :func:`peel_conflicts`)."""
+    px = np.asarray(region_px)
+    return np.array([(not idx.indexed[k]) and idx.why[k] in whys and px[k] >= min_px
+                     for k in range(int(idx.indexed.size))], bool)
+
+
 def peel_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, pattern: PatternSpec,
                    params: UnwrapParams = UnwrapParams(), gn: np.ndarray | None = None,
                    bn: np.ndarray | None = None, stripe_range: np.ndarray | None = None) -> tuple:
@@ -1185,11 +1195,10 @@ def peel_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, pattern:
     if frac <= 0 or not pattern.markers or n_reg == 0:
         return idx, peeled
     px = np.asarray(un.region_px)
-    cand = np.array([(not idx.indexed[k]) and idx.why[k] == MISFIT and px[k] >= params.retry_min_px
-                     for k in range(n_reg)], bool)
+    cand = failed_regions(idx, px, params.retry_min_px)
     if not cand.any():
         return idx, peeled
-    forced = RegionIndex(idx.offset, cand, idx.markers_seen, idx.evidence, idx.mismatch, idx.runner_up, idx.why)
+    forced = dataclasses.replace(idx, indexed=cand)    # the candidates, at their best offsets
     spans = marker_conflicts(labels, un, forced, pattern, params, gn, bn)
     if spans.size == 0:
         return idx, peeled
@@ -1207,8 +1216,9 @@ def peel_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, pattern:
         & (again.runner_up - again.mismatch >= params.peel_margin * margin)
     if not take.any():
         return idx, peeled
-    new = RegionIndex(idx.offset.copy(), idx.indexed.copy(), idx.markers_seen.copy(), idx.evidence.copy(),
-                      idx.mismatch.copy(), idx.runner_up.copy(), list(idx.why))
+    new = dataclasses.replace(idx, indexed=idx.indexed.copy(), markers_seen=idx.markers_seen.copy(),
+                              evidence=idx.evidence.copy(), mismatch=idx.mismatch.copy(),
+                              runner_up=idx.runner_up.copy(), why=list(idx.why))
     for k in np.flatnonzero(take):
         new.indexed[k] = True
         new.markers_seen[k], new.evidence[k] = again.markers_seen[k], again.evidence[k]

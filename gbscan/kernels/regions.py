@@ -900,6 +900,7 @@ def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, 
             continue
         # the flagged pixels, in order: the end rule reads the reasons as masked so far
         rsn = reason[v]
+        rg = region[v]
         for wi in range(Wp >> 3):
             m = flag64[wi] | need64[wi]   # bytes 0 or 1: one bit per flagged pixel
             while m != np.uint64(0):
@@ -913,7 +914,6 @@ def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, 
                     # 2 px of it)
                     at_end = u - end_px < 0 or u + end_px >= W
                     near_dark = at_end
-                    rg = region[v]
                     for x in range(max(u - end_px, 0), min(u + end_px, W - 1) + 1):
                         cx = rsn[x]
                         if x != u and cx >= 1 and cx <= 3:
