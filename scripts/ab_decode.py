@@ -25,7 +25,8 @@ rendered by the simulator at 640x480 (the paper's rig; ``--width 1280`` for 1280
 same scenes as ``scripts/bench_decode.py``.
 
 Two compiled copies of the kernels in one process are outside what numba promises: with
-``--base 42fb9bd`` (2026-11-28) the checkout's first ``link_components`` call segfaults once the
+``--base 42fb9bd`` or a later base (893fb30 too, 2026-11-28) the checkout's first
+``link_components`` call segfaults once the
 base has decoded a head frame (the checkout decoding first, or ``--base a279d7d``, run fine; each
 version alone runs fine, and a bounds-checked build of the checkout reads and writes nothing out
 of bounds on the frames that exercise this session's rules).  If a base crashes the script, take
