@@ -101,24 +101,29 @@ def rig_label(args) -> str:
 
 
 def add_jpeg_arguments(p) -> None:
-    """``--jpeg QUALITY`` and ``--jpeg-sampling`` of the simulators and the study scripts: frames
-    stored as JPEG (``gbscan.sim.Conditions.jpeg_quality`` / ``jpeg_sampling``); default lossless."""
-    from .sim.presets import JPEG_SAMPLINGS
+    """``--jpeg QUALITY``, ``--jpeg-sampling`` and ``--yuv`` of the simulators and the study scripts:
+    frames stored as JPEG (``gbscan.sim.Conditions.jpeg_quality`` / ``jpeg_sampling``) or delivered
+    as YUV (``Conditions.yuv``); default lossless RGB."""
+    from .sim.presets import JPEG_SAMPLINGS, YUV_FORMATS
 
     p.add_argument("--jpeg", type=int, default=0, metavar="QUALITY",
                    help="the camera stores JPEG of this quality (1-100; default 0: lossless frames)")
     p.add_argument("--jpeg-sampling", default="4:2:0", choices=JPEG_SAMPLINGS,
                    help="its chroma subsampling (default 4:2:0, most encoders' default)")
+    p.add_argument("--yuv", default="", choices=("",) + YUV_FORMATS,
+                   help="the camera delivers YUYV (4:2:2) or I420 (4:2:0) frames, converted to RGB by OpenCV "
+                        "(default: RGB frames)")
 
 
 def jpeg_fields(args) -> dict:
     """The :class:`gbscan.sim.Conditions` fields of :func:`add_jpeg_arguments`' options."""
-    return {"jpeg_quality": int(args.jpeg), "jpeg_sampling": args.jpeg_sampling}
+    return {"jpeg_quality": int(args.jpeg), "jpeg_sampling": args.jpeg_sampling, "yuv": getattr(args, "yuv", "")}
 
 
 def jpeg_label(args) -> str:
-    """", JPEG q85 4:2:0" for the options of :func:`add_jpeg_arguments`, "" without JPEG."""
-    return f", JPEG q{args.jpeg} {args.jpeg_sampling}" if args.jpeg else ""
+    """", JPEG q85 4:2:0" (", YUYV") for the options of :func:`add_jpeg_arguments`, "" for RGB frames."""
+    yuv = f", {args.yuv.upper()}" if getattr(args, "yuv", "") else ""
+    return (f", JPEG q{args.jpeg} {args.jpeg_sampling}" if args.jpeg else "") + yuv
 
 
 #: the colour of ``--ambient`` room light in the camera's red, green and blue (warm: tungsten or

@@ -64,6 +64,14 @@ REASONS = {
 }
 
 
+#: DecodeParams.subsampled_chroma's choices
+SUBSAMPLED_CHROMA = ("withhold", "decode", "off")
+#: a chroma-subsampled frame decoded shrunk by at least this (DecodeParams.resample: a camera with
+#: more pixels than the stripes need) is reported: each decoded pixel averages whole pixel pairs.
+#: Measured (scripts/resample_study.py --yuv, twenty-first session): see docs/method.md, "Camera frames"
+SUBSAMPLED_CHROMA_SHRINK = 2.0
+
+
 @dataclass(frozen=True)
 class DecodeParams:
     """Decoder parameters (px are camera pixels).
@@ -412,6 +420,20 @@ class DecodeParams:
         91.90-91.96 % reported against 92.29-92.45 / 91.68-91.84, head 84.40-84.58 / 86.30-86.61
         against 82.29-83.33 / 86.41-86.78, none wrong either way; the 1280x1024 head
         ``bench_decode``: 25.8 -> 13.2 ms).
+    subsampled_chroma : what to do with a frame whose colour was stored at half the horizontal
+        resolution and converted back to RGB (chroma subsampling: a YUYV or MJPEG camera, JPEG
+        4:2:2 / 4:2:0, most video), which :func:`gbscan.chroma.chroma_check` finds in the pixels
+        (``stats['chroma']``: its score and verdict).  Such colour edges are two pixels wide, the
+        stripes ~3.5: fake cyan appears at green-blue transitions and whole regions are indexed on
+        the wrong stripe (``scripts/sweep_decode.py``, 48 scenes, pixels on a wrong stripe off depth
+        edges: 0 in full colour; 2039 / 830 through a YUYV / I420 camera as OpenCV converts them,
+        ``--yuv``; 352 as JPEG q95 4:2:2, 111 as JPEG q90 4:2:0; scans up to 233 mm off).  ``"withhold"`` (the default): the frame is decoded, but no
+        pixel is reported -- every pixel it would have reported is ``unindexed``, the relative
+        unwrapping (``relative``, ``region``, ``column_relative``) is kept, and ``stats['why']``
+        says why -- unless the frame was decoded shrunk by ``SUBSAMPLED_CHROMA_SHRINK`` (2) or
+        more (``resample``: a camera with more pixels than its stripes need), where each decoded
+        pixel averages whole pixel pairs and the stripes keep their colours.  ``"decode"``: reported as a full-colour frame would be (wrong stripes
+        possible; the check still runs).  ``"off"``: no check (saves about 1 ms a frame).
     """
 
     blur_sigma_along_px: float | None = None
@@ -455,6 +477,7 @@ class DecodeParams:
     resample: float = 0.0
     confidence_spread_px: float = 0.15
     crop: bool = True
+    subsampled_chroma: str = "withhold"
 
     def __post_init__(self):
         def bad(name, why):
@@ -508,6 +531,8 @@ class DecodeParams:
             bad("locking_min_count", f"must be a whole number of boundaries >= 1, got {lm!r}")
         if not isinstance(self.unwrap, UnwrapParams):
             bad("unwrap", "must be an UnwrapParams")
+        if self.subsampled_chroma not in SUBSAMPLED_CHROMA:
+            bad("subsampled_chroma", f"must be one of {', '.join(SUBSAMPLED_CHROMA)}, got {self.subsampled_chroma!r}")
         if not (float(self.step_guard_ratio) == 0 or float(self.step_guard_ratio) > 1):
             bad("step_guard_ratio", "must be 0 (off) or a brightness ratio above 1")
         if not (float(self.rim_bias_px) >= 0) or int(self.rim_end_px) < 0:
@@ -893,7 +918,8 @@ def _decode_resampled(img, factor: float, stripe_px_frame: float, pattern: Patte
     sr = None if stripe_range is None else _shrink_range(stripe_range, h, w)
     t1 = time.perf_counter()
     # (a window cut out already: the shrunk decode need not look for one again, the same result)
-    sm = decode(small, pattern, dataclasses.replace(params, resample=1.0, crop=params.crop and window is None),
+    sm = decode(small, pattern, dataclasses.replace(params, resample=1.0, crop=params.crop and window is None,
+                                                    subsampled_chroma="off"),
                 keep_stages=keep_stages, stripe_range=sr)
     t2 = time.perf_counter()
     H, W = img.shape[:2]
@@ -1936,16 +1962,60 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     NaN); an image without a usable stripe signal gives an empty StripeMap whose ``stats['why']``
     says why.
     """
-    from . import kernels
-    from . import unwrap as uw
-
     if not isinstance(pattern, PatternSpec):
         raise GBError(f"decode: pattern must be a gbscan.pattern.PatternSpec, got {type(pattern).__name__}")
     if not isinstance(params, DecodeParams):
         raise GBError(f"decode: params must be a DecodeParams, got {type(params).__name__}")
-    ms: dict[str, float] = {}
     t0 = time.perf_counter()
     img = validate_image(image_rgb)
+    if params.subsampled_chroma == "off":
+        return _decode(img, pattern, params, keep_stages, stripe_range, t0)
+    from .chroma import chroma_check
+
+    chk = chroma_check(img)
+    t1 = time.perf_counter()
+    sm = _decode(img, pattern, params, keep_stages, stripe_range, t1)
+    ms = sm.stats.setdefault("ms", {})
+    ms["chroma"] = round((t1 - t0) * 1e3, 3)
+    if "total" in ms:
+        ms["total"] = round(ms["total"] + ms["chroma"], 3)
+    # a frame decoded shrunk by 2 or more averages each pixel pair's shared colour into one decoded
+    # pixel: its stripes keep their colours (see SUBSAMPLED_CHROMA_SHRINK)
+    withheld = (chk.subsampled and params.subsampled_chroma == "withhold"
+                and float(sm.stats.get("resample", 1.0)) < SUBSAMPLED_CHROMA_SHRINK)
+    sm.stats["chroma"] = {"score": None if not math.isfinite(chk.score) else round(chk.score, 3),
+                          "subsampled": chk.subsampled, "withheld": withheld}
+    if withheld:
+        withhold(sm, f"absolute stripe index withheld: {chk.describe()}; the stripes' colours smear and whole "
+                     "regions land on wrong stripes. Capture RGB or raw frames (a camera format without chroma "
+                     "subsampling, lossless files), or decode it anyway, wrong stripes possible: "
+                     "DecodeParams.subsampled_chroma='decode' (command line: --decode-param subsampled_chroma=decode)")
+    return sm
+
+
+def withhold(sm: StripeMap, why: str) -> StripeMap:
+    """Report nothing of a decoded frame, in place: every reported pixel becomes ``unindexed``
+    (column NaN, stripe -1, confidence 0, ``column_sigma`` NaN), the relative unwrapping is kept,
+    the counts follow and ``stats['why']`` says why.  Returns ``sm``."""
+    ok = sm.mask == OK
+    sm.mask[ok] = UNINDEXED
+    sm.column[ok] = np.nan
+    sm.stripe[ok] = -1
+    sm.confidence[ok] = 0
+    if sm.column_sigma is not None:
+        sm.column_sigma = np.full(sm.mask.shape, np.nan, np.float32)
+    sm.stats.update(_count_reasons(sm.mask))
+    sm.stats["why"] = why
+    return sm
+
+
+def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_stages: bool,
+            stripe_range: np.ndarray | None, t0: float) -> StripeMap:
+    # decode() of a validated frame (its chroma checked or not); t0: the clock at its start
+    from . import kernels
+    from . import unwrap as uw
+
+    ms: dict[str, float] = {}
     H, W = img.shape[:2]
     if stripe_range is not None:
         stripe_range = np.asarray(stripe_range)

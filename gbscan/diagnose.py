@@ -30,7 +30,10 @@ the unwrapping) or over its green / blue labelled pixels:
   times the factor the decoder shrank a frame of wide stripes by, ``stats['resample']``), checked
   against the stripes' width;
 * ``resample``: the factor the decoder shrank the frame by (1: decoded as it is);
-* ``reported_frac`` and ``lost_frac`` (per decoder reason) of the stripe area.
+* ``reported_frac`` and ``lost_frac`` (per decoder reason) of the stripe area;
+* ``chroma_score``, ``chroma_subsampled``, ``withheld``: whether the frame's colour was stored at
+  half the horizontal resolution (:func:`gbscan.chroma.chroma_check`, from the decode's stats) and
+  whether the decoder withheld its absolute index for it (``DecodeParams.subsampled_chroma``).
 
 Thresholds (module constants) come from simulated frames of the plane, sphere, head, real face
 and multi-object scenes (``typical`` preset and one condition changed at a time; see
@@ -110,6 +113,9 @@ class FrameCheck:
     stripe_camera_px: float
     window_px: int = 15
     resample: float = 1.0
+    chroma_score: float = float("nan")
+    chroma_subsampled: bool = False
+    withheld: bool = False
     findings: list = field(default_factory=list)
 
     def warnings(self) -> list:
@@ -222,13 +228,21 @@ def check_frame(image_rgb: np.ndarray, stripemap, params=None) -> FrameCheck:
         mg = _median(hg)
         bg = _median(hb) / mg if mg > 0 else nan
     sat = float((mask == SATURATED).sum()) / n_area if n_area else 0.0
+    ch = stripemap.stats.get("chroma")
+    if ch is None:   # decoded without the check (DecodeParams.subsampled_chroma="off"): measure it here
+        from .chroma import chroma_check
+
+        c_ = chroma_check(img)
+        ch = {"score": c_.score if np.isfinite(c_.score) else None, "subsampled": c_.subsampled, "withheld": False}
     chk = FrameCheck(
         pixels=H * W, stripe_area_px=n_area, labelled_px=n_gb,
         reported_frac=reported / n_area if n_area else 0.0, lost_frac=lost,
         stripe_snr=snr, noise_dn=noise, modulation_dn=mod, peak_dn=peak, saturated_frac=sat,
         contrast=contrast, ambient_ratio=ambient, blue_green_ratio=bg,
         stripe_camera_px=stripe_camera_px(stripemap.column, lab, int(stripemap.pattern.stripe_px)),
-        window_px=window, resample=resample)
+        window_px=window, resample=resample,
+        chroma_score=nan if ch.get("score") is None else float(ch["score"]),
+        chroma_subsampled=bool(ch.get("subsampled")), withheld=bool(ch.get("withheld")))
     chk.findings = findings(chk)
     return chk
 
@@ -245,6 +259,22 @@ def findings(c: FrameCheck) -> list:
                            "the 'gbscan pattern' frame, and the object in its light and in the camera's view?",
              "no stripes seen: projector on, object in its light?")
         return out
+    if c.chroma_subsampled:
+        what = (f"the frame's colour was stored at half the horizontal resolution (chroma subsampling 4:2:2 / "
+                f"4:2:0: a YUYV or MJPEG camera format, JPEG, most video; phase score {c.chroma_score:.2f})")
+        fix = "set the camera to an RGB or raw format and record lossless files (PNG, TIFF, FFV1)"
+        if c.withheld:
+            warn("chroma", f"{what}: the stripes' colours smear into each other, so the decoder withholds the "
+                           f"absolute index: nothing is reported; {fix}",
+                 "chroma subsampled (YUYV/MJPEG): use RGB or raw frames")
+        elif c.resample >= 2.0:
+            out.append(Finding("chroma", "info",
+                               f"{what}: decoded shrunk by {c.resample:g}, each decoded pixel averages whole pixel "
+                               f"pairs, so the stripes keep their colours; 4:2:0 leaves the columns noisier; {fix}",
+                               "chroma subsampled: decoded shrunk"))
+        else:
+            warn("chroma", f"{what}: decoded anyway (subsampled_chroma=decode), expect regions on wrong stripes; "
+                           f"{fix}", "chroma subsampled (YUYV/MJPEG): use RGB or raw frames")
     if c.saturated_frac > SATURATED_WARN:
         warn("saturated", f"{100 * c.saturated_frac:.1f} % of the stripe area is saturated: lower the camera's "
                           "exposure (or the projector's brightness); saturated pixels are dropped",
@@ -321,7 +351,7 @@ def findings(c: FrameCheck) -> list:
                            "the stripes are broken up (see the figures above; 'gbscan decode --preview' shows "
                            "where)", f"{100 * iso:.0f} % in fragments")
     un = c.lost_frac.get("unindexed", 0.0)
-    if np.isfinite(un) and un > UNINDEXED_WARN:
+    if np.isfinite(un) and un > UNINDEXED_WARN and not c.withheld:
         warn("unindexed", f"{100 * un:.0f} % of the stripe area could not be given an absolute stripe (too few "
                           "cyan markers seen on its surfaces): larger surfaces, less blur and noise, or a "
                           "camera that keeps full colour (no 4:2:0 chroma)", f"{100 * un:.0f} % unindexed: few markers seen")
@@ -344,6 +374,9 @@ def report(c: FrameCheck) -> str:
         f"{100 * c.saturated_frac:.2f} %",
         f"contrast {f(c.contrast, '.2f')}; ambient (red) {f(c.ambient_ratio, '.2f')}; blue/green "
         f"{f(c.blue_green_ratio, '.2f')}; {f(c.stripe_camera_px, '.1f')} camera px per stripe",
+        "colour resolution: " + ("n/a" if not np.isfinite(c.chroma_score) else
+                                 f"{'half (chroma subsampled)' if c.chroma_subsampled else 'full'} along the rows "
+                                 f"(phase score {c.chroma_score:.2f}; under 0.5: subsampled)"),
     ]
     if not c.findings:
         lines.append("no findings: the frame looks like a good rig's")

@@ -308,8 +308,8 @@ def jpeg_info(path) -> dict | None:
 
 #: What halving the colour resolution costs (simulated, ``scripts/coverage_study.py --jpeg``): the
 #: words every input warning about chroma subsampling uses (files, videos, cameras).
-CHROMA_COST = ("the colour stripes lose half their resolution (simulated face, JPEG quality 95 4:2:0: 45 % of "
-               "its pixels kept instead of 84 %, twice the depth noise)")
+CHROMA_COST = ("the colour stripes lose half their resolution and whole regions land on wrong stripes, so the "
+               "decoder withholds the absolute index of such frames (DecodeParams.subsampled_chroma)")
 
 
 def input_warning(path) -> str | None:

@@ -21,7 +21,8 @@ Before you start: the projector's display extended (not mirrored) at its native 
 --screen-x/--screen-y its top-left in the desktop; the camera's exposure, gain and white balance
 locked (auto exposure chases the stripes); the camera delivering uncompressed RGB frames if it
 can (--camera-fourcc; a YUYV, MJPG or 4:2:0 stream halves the stripes' colour resolution: the
-script warns, see docs/method.md, "Camera frames").
+script warns, and the decoder finds it in the frames and withholds their absolute index, so
+nothing is scanned; see docs/method.md, "Camera frames").
 --depth-range MIN MAX (mm) is the working volume, as for ``gbscan scan``.
 
 --simulate films a simulated face turning before a wall with the paper rig (it needs a

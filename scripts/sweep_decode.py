@@ -186,11 +186,17 @@ def _conditions(preset: str, ss: int, jpeg: dict | None):
 
 def load_or_render(name, preset, seed, ss, factory, cache: Path | None, jpeg: dict | None = None):
     """(image, truth_column, depth_edge, lit) of one scene, from the cache when there; ``jpeg``:
-    :class:`gbscan.sim.Conditions` JPEG fields (frames stored as JPEG), None: lossless."""
+    :class:`gbscan.sim.Conditions` JPEG and YUV fields (frames stored as JPEG, delivered as YUV),
+    None: lossless RGB."""
     from gbscan import sim
     from gbscan.io import save_npz
     from gbscan.pattern import PatternSpec, render_pattern
 
+    if jpeg and jpeg.get("yuv"):
+        # a YUV camera: the RGB frame's round trip through OpenCV's YUV conversions (a cheap
+        # transform of the cached frame, the same as rendering with Conditions.yuv)
+        image, truth, depth_edge, lit = load_or_render(name, preset, seed, ss, factory, cache, {**jpeg, "yuv": ""})
+        return sim.yuv_round_trip(image, jpeg["yuv"]), truth, depth_edge, lit
     tag = ""
     if jpeg and jpeg["jpeg_quality"]:
         tag = f"_jpeg{jpeg['jpeg_quality']}_{jpeg['jpeg_sampling'].replace(':', '')}"

@@ -27,6 +27,7 @@ FAULTS = {
     "colour_balance": dataclasses.replace(BASE, proj_gain_rgb=(1.0, 1.0, 0.3)),
     "contrast": dataclasses.replace(BASE, proj_sigma_px=3.0),
     "noise": dataclasses.replace(BASE, full_well_e=500.0, read_noise_dn=3.0),
+    "chroma": dataclasses.replace(BASE, yuv="yuyv"),
 }
 
 
@@ -62,6 +63,11 @@ def test_each_fault_raises_its_own_finding(fault):
     if fault in ("dim", "saturated", "ambient", "colour_balance", "contrast"):
         assert "noise" not in keys and "fragmented" not in keys
     assert all(f.text and f.short and f.level == "warn" for f in c.warnings())
+    if fault == "chroma":   # the decoder withheld the index: the check says why, not "unindexed"
+        assert c.withheld and c.chroma_subsampled and c.chroma_score < 0.5 and keys[0] == "chroma"
+        assert "unindexed" not in keys and "withholds" in c.warnings()[0].text
+    else:
+        assert not c.chroma_subsampled and c.chroma_score > 0.7
 
 
 def test_no_pattern_and_a_uniform_flood_say_no_stripes():

@@ -195,6 +195,27 @@ def test_scan_command_warns_about_a_chroma_subsampled_jpeg(tmp_path, monkeypatch
     assert rc == 0 and "warning" not in err
 
 
+def test_scan_command_withholds_a_yuyv_frame_and_writes_nothing(tmp_path, capsys, calib_file):
+    """A frame from a YUYV camera (pixel pairs share their colour): no points, one line saying why
+    and what to do, exit 1, no file; --decode-param subsampled_chroma=decode scans it anyway."""
+    from gbscan import sim as gsim
+    from gbscan.pattern import render_pattern
+
+    cond = dict(supersample=1, yuv="yuyv")
+    import dataclasses
+
+    r = gsim.render(paper_rig(), gsim.scenes.plane(650.0), render_pattern(PatternSpec()),
+                    dataclasses.replace(gsim.preset("typical"), **cond), seed=0)
+    write_png(tmp_path / "yuyv.png", r.image)
+    rc, text, err = run_main(capsys, "scan", tmp_path / "yuyv.png", "--calib", calib_file, "-o", tmp_path / "c.ply")
+    assert rc == 1 and text == "" and not (tmp_path / "c.ply").exists()
+    assert err.count("\n") == 1 and "withheld" in err and "subsampled_chroma=decode" in err and "RGB or raw" in err
+    rc, text, err = run_main(capsys, "scan", tmp_path / "yuyv.png", "--calib", calib_file, "-o", tmp_path / "c.ply",
+                             "--decode-param", "subsampled_chroma=decode")
+    assert rc == 0 and "points:" in text and (tmp_path / "c.ply").exists()
+    assert "hint: " in err and "chroma subsampling" in err and "decoded anyway" in err
+
+
 def test_raw_bayer_frame_from_the_simulator_to_the_cloud(tmp_path, capsys, calib_file, scanner):
     """gbscan simulate --bayer RGGB --raw writes a mosaic; gbscan scan/decode --bayer RGGB demosaic and scan it
     as the API does with gbscan.io.demosaic; without --bayer, one line says what to give."""

@@ -168,6 +168,9 @@ def run(args) -> int:
         rig = [f.short for f in warns if f.key != "no_stripes"]
         if rig:     # one line still: the rig check's findings join the reason
             why += f" (rig check: {'; '.join(rig[:2])})"
+        chroma = (scan.stripemap.stats.get("chroma") or {}) if scan.stripemap is not None else {}
+        if chroma.get("withheld"):   # the reason says what to do
+            raise GBError(f"no points reconstructed from {args.image}: {why}")
         raise GBError(f"no points reconstructed from {args.image}: {why}. Check that the projector shows the "
                       "'gbscan pattern' frame, the exposure, and that the calibration belongs to this rig")
 

@@ -15,6 +15,8 @@ Signal chain (see :mod:`gbscan.sim.render`)::
     + read noise (read_noise_dn / 255) --> encode ~255 * lin**(1/gamma) (small linear toe at
     black, see gbscan.sim.render.encode) --> round, clip to 0..255 --> [demosaic]
     --> [optional JPEG round trip: OpenCV's encoder at jpeg_quality with jpeg_sampling]
+    --> [optional YUV round trip: a camera delivering YUYV (4:2:2) or I420 (4:2:0) frames that
+        OpenCV converts to RGB: yuv]
 
 ``crosstalk[c, p]`` is how much camera channel ``c`` (R, G, B) sees of projector channel ``p``.
 ``ambient_rgb`` is ambient irradiance relative to a white projector pixel at ``ref_distance_mm``
@@ -39,6 +41,8 @@ from ..errors import GBError
 BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 #: JPEG chroma subsamplings ``Conditions.jpeg_sampling`` takes
 JPEG_SAMPLINGS = ("4:4:4", "4:2:2", "4:2:0")
+#: camera YUV formats ``Conditions.yuv`` takes (OpenCV's conversions to and from RGB)
+YUV_FORMATS = ("yuyv", "i420")
 
 
 def _m(rows):
@@ -73,6 +77,9 @@ class Conditions:
     bayer_raw: bool = False              # with bayer: deliver the raw mosaic (H, W) uint8, not demosaiced
     jpeg_quality: int = 0                # 0 = lossless frames; 1..100 = stored as JPEG of this quality
     jpeg_sampling: str = "4:2:0"         # its chroma subsampling (4:2:0: most encoders' default)
+    yuv: str = ""                        # "" = RGB frames; "yuyv" (4:2:2) / "i420" (4:2:0) = the camera
+                                         # delivers YUV that OpenCV converts to RGB (pixel pairs
+                                         # share their colour: most webcams' uncompressed formats)
 
     def __post_init__(self):
         if int(self.supersample) < 1:
@@ -95,6 +102,10 @@ class Conditions:
             raise GBError("bayer_raw needs a Bayer mosaic (bayer='RGGB', ...)")
         if self.bayer_raw and self.jpeg_quality:
             raise GBError("bayer_raw frames are not stored as JPEG (a raw mosaic is the sensor's own data)")
+        if self.yuv not in ("",) + YUV_FORMATS:
+            raise GBError(f"yuv must be '' or one of {', '.join(YUV_FORMATS)}, got {self.yuv!r}")
+        if self.yuv and (self.jpeg_quality or self.bayer_raw):
+            raise GBError("yuv frames are neither JPEG nor raw mosaics: set one of yuv, jpeg_quality, bayer_raw")
         if self.jpeg_sampling not in JPEG_SAMPLINGS:
             raise GBError(f"jpeg_sampling must be one of {', '.join(JPEG_SAMPLINGS)}, got {self.jpeg_sampling!r}")
         object.__setattr__(self, "crosstalk", _m(c))

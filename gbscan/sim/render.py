@@ -451,13 +451,14 @@ def camera_image(linear: np.ndarray, cam: Camera, cond: Conditions, rng: np.rand
     if cond.motion_px > 0:
         img = cv2.filter2D(img, -1, _motion_kernel(cond.motion_px, cond.motion_deg), borderType=cv2.BORDER_REFLECT)
     if cond.bayer:
-        return _jpeg_round_trip(_bayer_image(img, cond, rng), cond)
+        return _yuv_round_trip(_jpeg_round_trip(_bayer_image(img, cond, rng), cond), cond)
     noisy = img
     if cond.full_well_e > 0:
         noisy = noisy + np.sqrt(np.clip(img, 0, None) / cond.full_well_e) * rng.standard_normal(img.shape, np.float32)
     if cond.read_noise_dn > 0:
         noisy = noisy + np.float32(cond.read_noise_dn / 255.0) * rng.standard_normal(img.shape, np.float32)
-    return _jpeg_round_trip(np.clip(np.rint(encode(noisy, cond.gamma)), 0, 255).astype(np.uint8), cond)
+    return _yuv_round_trip(_jpeg_round_trip(np.clip(np.rint(encode(noisy, cond.gamma)), 0, 255).astype(np.uint8), cond),
+                           cond)
 
 
 _JPEG_SAMPLING_FLAGS = {"4:4:4": "IMWRITE_JPEG_SAMPLING_FACTOR_444", "4:2:2": "IMWRITE_JPEG_SAMPLING_FACTOR_422",
@@ -477,6 +478,30 @@ def _jpeg_round_trip(rgb: np.ndarray, cond: Conditions) -> np.ndarray:
     if not ok:
         raise GBError("the simulated camera could not encode its frame as JPEG")
     return np.ascontiguousarray(cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1])
+
+
+_YUV_CODES = {"yuyv": ("COLOR_RGB2YUV_YUYV", "COLOR_YUV2RGB_YUYV"), "i420": ("COLOR_RGB2YUV_I420", "COLOR_YUV2RGB_I420")}
+
+
+def _yuv_round_trip(rgb: np.ndarray, cond: Conditions) -> np.ndarray:
+    # the frame of a camera delivering YUV (cond.yuv), unchanged for RGB frames or a raw mosaic
+    if not cond.yuv or rgb.ndim != 3:
+        return rgb
+    return yuv_round_trip(rgb, cond.yuv)
+
+
+def yuv_round_trip(rgb: np.ndarray, fmt: str) -> np.ndarray:
+    """An 8-bit RGB frame (H, W, 3) as a camera delivering YUV frames gives it after OpenCV's
+    conversion back to RGB: ``fmt`` "yuyv" keeps one colour per pixel pair along the rows (4:2:2),
+    "i420" one per 2x2 block (4:2:0).  H and W must be even."""
+    import cv2
+
+    if fmt not in _YUV_CODES:
+        raise GBError(f"yuv format must be one of {', '.join(_YUV_CODES)}, got {fmt!r}")
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8 or rgb.shape[0] % 2 or rgb.shape[1] % 2:
+        raise GBError(f"a {fmt} camera needs an (H, W, 3) uint8 frame of even size, got {rgb.dtype} {rgb.shape}")
+    to, back = (getattr(cv2, c) for c in _YUV_CODES[fmt])
+    return np.ascontiguousarray(cv2.cvtColor(cv2.cvtColor(np.ascontiguousarray(rgb), to), back))
 
 
 def _bayer_image(img: np.ndarray, cond: Conditions, rng: np.random.Generator) -> np.ndarray:

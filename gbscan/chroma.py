@@ -1,0 +1,139 @@
+"""Chroma subsampling seen in the pixels of an RGB frame.
+
+Most cameras and codecs store colour at half the horizontal resolution of the brightness: YUYV
+(4:2:2) and MJPEG (4:2:0) webcams, JPEG files (OpenCV's and most encoders' default 4:2:0), H.264
+and most video.  Converted back to RGB, such a frame looks like any other, but its colour edges are
+two pixels wide: at ~3.5 camera px per stripe the green / blue / cyan stripes then smear into each
+other, fake cyan appears at green-blue transitions, and the decoder's absolute index can be
+confidently wrong (``scripts/sweep_decode.py``, 48 scenes, pixels on a wrong stripe off depth
+edges: 0 in full colour; 2039 through a YUYV camera and 830 through an I420 one, as OpenCV converts
+them, ``--yuv``; 352 as JPEG q95 4:2:2, 111 as JPEG q90 4:2:0).  A
+file's header or a stream's pixel format tells (``gbscan.io.jpeg_info``, ``gbscan.frames``); a frame
+that arrives as an array, or as a PNG saved from such a camera, does not.  This module looks at the
+pixels.
+
+**How.**  A colour channel stored at half the width and upsampled by 2 along the rows, whatever
+the filter centred between the stored samples (pixel repetition as OpenCV's YUYV and I420
+conversions do, the JPEG decoder's triangle, linear or cubic resizing), makes windows of
+consecutive pixels obey more exact linear relations when they start on one column parity than
+when they start on the other: repetition makes the first difference across a pair vanish, the
+triangle the third difference centred on one, a cubic filter a relation over 10 pixels.
+Full-resolution colour has no preferred parity.  :func:`chroma_check` takes the Cb and Cr (BT.601)
+windows of ``WINDOW`` = 10 pixels along a sample of rows, every pixel of a window striped, builds
+the 10x10 second-moment matrix of the windows starting on even columns and of those starting on
+odd ones, and compares their eigenvalues: ``score`` is the lowest ratio (smaller / larger) among
+the 6 smallest.  Measured on the simulator's frames (the 92 frames of ``scripts/sweep_decode.py``'s
+sets: typical, hard, clean, room light, Bayer, supersampled or not; docs/method.md, "Camera
+frames"): full colour 0.76-0.99 (lossless), 0.86-0.99 (Bayer demosaiced), 0.79-1.00 (JPEG 4:4:4
+q95); a YUYV or I420 camera through OpenCV 0.00-0.13, 4:2:2 / 4:2:0 upsampled linearly or by cubic
+resizing 0.01-0.34, JPEG q95 4:2:2 / q90 4:2:0 0.03-0.21 (the hard preset's noise: up to 0.43).
+Frames are called subsampled below ``SCORE_MAX`` = 0.5.  Not found: colour upsampled from
+samples co-sited with the even columns (MPEG-2 / H.264 siting) scores 0.86-1.00; windows of 9
+pixels find it but lower Bayer frames to 0.43, so they are not used (video files are named by
+their stream's pixel format instead, ``gbscan.frames``).
+
+Pure numpy over one (H, W, 3) uint8 RGB frame; 0.9-1.3 ms at 640x480.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: score below which a frame's colour is called subsampled along its rows
+SCORE_MAX = 0.5
+#: pixels per window along a row (10: cubic upsamplers too)
+WINDOW = 10
+
+
+@dataclass(frozen=True)
+class ChromaCheck:
+    """What :func:`chroma_check` found.
+
+    score : min / max of the two column phases' prediction residual energies (~1 full colour, ~0
+        colour upsampled by 2 along the rows); NaN when too few striped pixels were seen.
+    subsampled : score below the threshold.
+    samples : striped pixels the predictors were fitted on (both phases, both channels).
+    """
+
+    score: float
+    subsampled: bool
+    samples: int
+
+    def describe(self) -> str:
+        """One phrase for messages."""
+        if not np.isfinite(self.score):
+            return "colour resolution not measured (too few striped pixels)"
+        if self.subsampled:
+            return (f"colour stored at half the horizontal resolution (chroma subsampling: 4:2:2 / 4:2:0, e.g. a "
+                    f"YUYV or MJPEG camera, JPEG; phase score {self.score:.2f} < {SCORE_MAX:g})")
+        return f"full colour resolution (phase score {self.score:.2f})"
+
+
+def chroma_check(image_rgb: np.ndarray, *, level: int = 40, row_step: int = 8, max_rows: int = 16,
+                 more_rows: int = 48, unsure: tuple[float, float] = (0.25, 0.75), min_samples: int = 2000,
+                 score_max: float = SCORE_MAX) -> ChromaCheck:
+    """Is this RGB frame's colour subsampled along its rows?  (See the module docstring.)
+
+    image_rgb : (H, W, 3) uint8 RGB.
+    level : a pixel takes part when its green or blue byte reaches it (the stripes, not the dark).
+    row_step, max_rows : every ``row_step``-th row, at most ``max_rows`` rows (spread over the
+        rows that hold striped pixels); a score inside ``unsure`` is measured again on up to
+        ``more_rows`` rows (2 of the sweep's 92 full-colour frames; of its subsampled ones, the
+        hard preset's JPEG frames alone).
+    min_samples : fewer striped pixels than this: score NaN, not called subsampled.
+    """
+    img = np.asarray(image_rgb)
+    if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+        raise ValueError(f"chroma_check: image must be (H, W, 3) uint8 RGB, got {img.dtype} {img.shape}")
+    got = _check(img, level, row_step, max_rows, min_samples, score_max)
+    if more_rows > max_rows and unsure[0] < got.score < unsure[1]:
+        got = _check(img, level, row_step, more_rows, min_samples, score_max)
+    return got
+
+
+def _check(img, level, row_step, max_rows, min_samples, score_max) -> ChromaCheck:
+    H, W = img.shape[:2]
+    if W < 4 * WINDOW:
+        return ChromaCheck(float("nan"), False, 0)
+    cand = np.arange(0, H, max(int(row_step), 1))
+    sub = img[cand]
+    striped = np.maximum(sub[..., 1], sub[..., 2]) >= level
+    keep = striped.any(axis=1)
+    rows, striped = cand[keep], striped[keep]
+    if rows.size > max_rows:
+        pick = np.linspace(0, rows.size - 1, max_rows).round().astype(np.int64)
+        rows, striped = rows[pick], striped[pick]
+    if rows.size == 0:
+        return ChromaCheck(float("nan"), False, 0)
+    f = img[rows].astype(np.float32)
+    chroma = np.stack([-0.168736 * f[..., 0] - 0.331264 * f[..., 1] + 0.5 * f[..., 2],
+                       0.5 * f[..., 0] - 0.418688 * f[..., 1] - 0.081312 * f[..., 2]]).reshape(-1)
+    # windows of L consecutive pixels along the rows, every pixel striped, by start phase
+    L = WINDOW
+    R = rows.size
+    cs = np.zeros((R, W + 1), np.int32)
+    np.cumsum(striped, axis=1, out=cs[:, 1:])
+    full = (cs[:, L:] - cs[:, :-L]) == L                     # (R, W - L + 1): window at x all striped
+    windows = np.lib.stride_tricks.sliding_window_view(chroma, L)   # (2 R W - L + 1, L) view
+    covs = []
+    n = 0
+    for phase in (0, 1):
+        r, x = np.nonzero(full[:, phase::2])
+        cnt = int(r.size)
+        if 4 * cnt < min_samples:
+            return ChromaCheck(float("nan"), False, n + 2 * cnt)
+        start = r * W + (2 * x + phase)
+        win = windows[np.concatenate([start, start + R * W])]     # (2 cnt, L) float32: both channels
+        covs.append((win.T @ win).astype(np.float64) / win.shape[0])
+        n += win.shape[0]
+    if not max(c[-1, -1] for c in covs) > 1e-6:   # flat colour: nothing to tell the phases apart
+        return ChromaCheck(float("nan"), False, n)
+    # the smallest eigenvalues: a channel upsampled by 2 has more vanishing directions in one start
+    # phase than in the other (for filters centred between the samples, as JPEG decoders, OpenCV's
+    # YUYV conversion and resizing place them)
+    ev = np.linalg.eigvalsh(np.stack(covs))
+    lo, hi = np.maximum(ev.min(axis=0), 0.0), ev.max(axis=0)
+    k = L // 2 + 1
+    score = float(np.min(lo[:k] / np.maximum(hi[:k], 1e-12 * hi[-1])))
+    return ChromaCheck(float(score), bool(score < score_max), n)

@@ -1,0 +1,165 @@
+"""Chroma subsampling found in the pixels (gbscan.chroma), and what the decoder does with such frames."""
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from gbscan import sim
+from gbscan.chroma import SCORE_MAX, chroma_check
+from gbscan.decode import OK, UNINDEXED, DecodeParams, decode
+from gbscan.errors import GBError
+from gbscan.pattern import PatternSpec, render_pattern
+
+_CACHE = {}
+
+
+def frame(scene="multi_object", preset="typical", seed=1, args=(), **cond):
+    """A simulated frame (supersample 1 to keep it quick) of ``scene(*args)`` under ``preset`` with
+    Conditions ``cond``."""
+    key = (scene, preset, seed, args, tuple(sorted(cond.items())))
+    if key not in _CACHE:
+        c = dataclasses.replace(sim.preset(preset), supersample=1, **cond)
+        _CACHE[key] = sim.render(sim.paper_rig(), getattr(sim.scenes, scene)(*args), render_pattern(PatternSpec()),
+                                 c, seed=seed)
+    return _CACHE[key]
+
+
+def _upsampled(chroma_rows: np.ndarray, interp: int) -> np.ndarray:
+    h, w = chroma_rows.shape
+    small = cv2.resize(chroma_rows, (w // 2, h), interpolation=cv2.INTER_AREA)
+    return cv2.resize(small, (w, h), interpolation=interp)
+
+
+def _with_chroma(img: np.ndarray, interp: int | None, shift: int = 0) -> np.ndarray:
+    # the frame with its Cb, Cr halved along the rows and upsampled again with ``interp`` (None: as
+    # it is), the pairs starting at column ``shift``
+    ycc = cv2.cvtColor(img, cv2.COLOR_RGB2YCrCb).astype(np.float32)
+    if interp is not None:
+        for c in (1, 2):
+            ch = ycc[:, shift:, c]
+            w = ch.shape[1] // 2 * 2
+            ycc[:, shift:shift + w, c] = _upsampled(np.ascontiguousarray(ch[:, :w]), interp)
+    return cv2.cvtColor(np.clip(np.rint(ycc), 0, 255).astype(np.uint8), cv2.COLOR_YCrCb2RGB)
+
+
+# -- the check on its own -----------------------------------------------------------------------
+def test_random_colour_is_full_and_every_2x_upsampler_is_found():
+    rng = np.random.default_rng(3)
+    img = rng.integers(60, 256, (96, 160, 3), dtype=np.uint8)
+    full = chroma_check(img)
+    assert full.score > 0.8 and not full.subsampled and full.samples > 2000
+    for interp in (cv2.INTER_NEAREST, cv2.INTER_LINEAR, cv2.INTER_CUBIC):
+        for shift in (0, 1):      # pairs at even or odd columns (a frame cropped by one column)
+            got = chroma_check(_with_chroma(img, interp, shift))
+            assert got.subsampled and got.score < 0.1, (interp, shift, got)
+
+
+def test_simulated_cameras_full_colour_and_subsampled():
+    """The decoder's frames: full colour (lossless RGB, a Bayer camera, JPEG 4:4:4 q95) against a
+    YUYV / I420 camera and JPEG 4:2:2 / 4:2:0 (the sweep's 92 frames: >= 0.76 against <= 0.43)."""
+    full = {"rgb": {}, "bayer": {"bayer": "RGGB"}, "jpeg444": {"jpeg_quality": 95, "jpeg_sampling": "4:4:4"}}
+    half = {"yuyv": {"yuv": "yuyv"}, "i420": {"yuv": "i420"}, "jpeg422": {"jpeg_quality": 95, "jpeg_sampling": "4:2:2"},
+            "jpeg420": {"jpeg_quality": 90, "jpeg_sampling": "4:2:0"}}
+    for name, cond in full.items():
+        got = chroma_check(frame(**cond).image)
+        assert not got.subsampled and got.score > 0.7, (name, got)
+    for name, cond in half.items():
+        got = chroma_check(frame(**cond).image)
+        assert got.subsampled and got.score < 0.25, (name, got)
+    # the hard preset's noise lifts the subsampled score most; still under the threshold
+    got = chroma_check(frame(preset="hard", jpeg_quality=90, jpeg_sampling="4:2:0").image)
+    assert got.subsampled and got.score < SCORE_MAX, got
+
+
+def test_nothing_to_measure_is_not_called_subsampled():
+    for img in (np.zeros((48, 64, 3), np.uint8), np.full((48, 64, 3), 200, np.uint8),
+                np.full((48, 20, 3), 200, np.uint8)):
+        got = chroma_check(img)
+        assert np.isnan(got.score) and not got.subsampled
+        assert "not measured" in got.describe()
+    with pytest.raises(ValueError, match="uint8 RGB"):
+        chroma_check(np.zeros((48, 64), np.uint8))
+
+
+def test_yuv_camera_conditions_and_round_trip():
+    rng = np.random.default_rng(0)
+    img = rng.integers(64, 192, (8, 12, 3), dtype=np.uint8)     # colours that stay inside RGB's gamut
+    out = sim.yuv_round_trip(img, "yuyv")
+    assert out.shape == img.shape and out.dtype == np.uint8
+    cb = cv2.cvtColor(out, cv2.COLOR_RGB2YCrCb)[..., 2].astype(int)
+    assert np.abs(cb[:, 0::2] - cb[:, 1::2]).max() <= 3     # pixel pairs share their colour (rounding)
+    assert np.abs(cb[:, 1:-1:2] - cb[:, 2::2]).max() > 20
+    with pytest.raises(GBError, match="even size"):
+        sim.yuv_round_trip(img[:, :11], "i420")
+    with pytest.raises(GBError, match="yuyv, i420"):
+        sim.yuv_round_trip(img, "nv21")
+    with pytest.raises(GBError, match="yuv must be"):
+        sim.Conditions(yuv="rgb")
+    with pytest.raises(GBError, match="neither JPEG"):
+        sim.Conditions(yuv="yuyv", jpeg_quality=90)
+
+
+# -- the decoder's policy -----------------------------------------------------------------------
+def _wrong(sm, r, w=PatternSpec().stripe_px):
+    err, bad = sim.column_errors(sm.column, sm.valid, r.proj_xy[..., 0], w)
+    return int((bad & ~r.depth_edge).sum())
+
+
+def test_decoder_withholds_the_index_of_a_yuyv_frame():
+    """Decoded as full colour, the multi-object scene at 680 mm (the sweep's moving frame 6) through a
+    YUYV camera puts a region on a wrong stripe (a 4:2:2 frame: pixel pairs share their colour); by
+    default nothing is reported, every pixel that would have been is unindexed, and the relative
+    unwrapping stays."""
+    r = frame(seed=6, args=(680.0,), yuv="yuyv")
+    anyway = decode(r.image, PatternSpec(), DecodeParams(subsampled_chroma="decode"))
+    off = decode(r.image, PatternSpec(), DecodeParams(subsampled_chroma="off"))
+    sm = decode(r.image, PatternSpec())
+    assert anyway.stats["chroma"]["subsampled"] and "chroma" not in off.stats
+    assert np.array_equal(anyway.mask, off.mask) and np.array_equal(anyway.column, off.column, equal_nan=True)
+    assert _wrong(anyway, r) > 500 and anyway.stats["reported"] > 10000    # measured: 2037 wrong
+    assert sm.stats["chroma"] == {**anyway.stats["chroma"], "withheld": True}
+    assert sm.stats["reported"] == 0 and not (sm.mask == OK).any() and np.isnan(sm.column).all()
+    assert (sm.stripe == -1).all() and (sm.confidence == 0).all()
+    assert sm.stats["reasons"]["unindexed"] == anyway.stats["reasons"]["unindexed"] + anyway.stats["reported"]
+    assert np.array_equal(sm.mask == UNINDEXED, (anyway.mask == UNINDEXED) | (anyway.mask == OK))
+    assert np.array_equal(sm.relative, anyway.relative) and np.array_equal(sm.region, anyway.region)
+    assert sm.column_sigma is None or np.isnan(sm.column_sigma).all()
+    assert "withheld" in sm.stats["why"] and "subsampled_chroma" in sm.stats["why"]
+    assert sm.stats["ms"]["chroma"] > 0
+
+
+def test_full_colour_frames_decode_as_without_the_check():
+    for cond in ({}, {"bayer": "RGGB"}):
+        r = frame("sphere", **cond)
+        a = decode(r.image, PatternSpec())
+        b = decode(r.image, PatternSpec(), DecodeParams(subsampled_chroma="off"))
+        assert a.stats["chroma"]["subsampled"] is False and a.stats["chroma"]["withheld"] is False
+        assert a.stats["reported"] == b.stats["reported"] > 0
+        assert np.array_equal(a.mask, b.mask) and np.array_equal(a.column, b.column, equal_nan=True)
+        assert "why" not in a.stats
+
+
+def test_subsampled_chroma_param_is_validated():
+    with pytest.raises(GBError, match="subsampled_chroma"):
+        DecodeParams(subsampled_chroma="ignore")
+
+
+def test_a_camera_with_more_pixels_is_decoded_shrunk_and_reported():
+    """Through a YUYV camera of 1280x960 pixels the stripes span ~7.5 px: the decoder shrinks the
+    frame by 2 (``DecodeParams.resample``), each decoded pixel averages whole pixel pairs, and the
+    frame is reported as in full colour (measured: 0 pixels on a wrong stripe either way)."""
+    rig = sim.paper_rig(camera_px=(1280, 960))
+    c = dataclasses.replace(sim.preset("typical"), supersample=1)
+    r = sim.render(rig, sim.scenes.sphere(), render_pattern(PatternSpec()), c, seed=1)
+    rgb = decode(r.image, PatternSpec())
+    yuyv = decode(sim.yuv_round_trip(r.image, "yuyv"), PatternSpec())
+    assert yuyv.stats["resample"] >= 2 and yuyv.stats["chroma"]["subsampled"] and not yuyv.stats["chroma"]["withheld"]
+    assert not rgb.stats["chroma"]["subsampled"]
+    cand = r.lit & ~r.depth_edge
+    assert (yuyv.valid & cand).sum() > 0.95 * (rgb.valid & cand).sum() > 0
+    assert _wrong(yuyv, r) == 0
+    from gbscan.diagnose import check_frame
+
+    keys = {f.key: f.level for f in check_frame(sim.yuv_round_trip(r.image, "yuyv"), yuyv).findings}
+    assert keys.get("chroma") == "info"
