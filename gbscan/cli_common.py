@@ -101,9 +101,10 @@ def rig_label(args) -> str:
 
 
 def add_jpeg_arguments(p) -> None:
-    """``--jpeg QUALITY``, ``--jpeg-sampling`` and ``--yuv`` of the simulators and the study scripts:
-    frames stored as JPEG (``gbscan.sim.Conditions.jpeg_quality`` / ``jpeg_sampling``) or delivered
-    as YUV (``Conditions.yuv``); default lossless RGB."""
+    """``--jpeg QUALITY``, ``--jpeg-sampling``, ``--yuv`` and ``--lateral-ca-px`` of the simulators and
+    the study scripts: frames stored as JPEG (``gbscan.sim.Conditions.jpeg_quality`` /
+    ``jpeg_sampling``) or delivered as YUV (``Conditions.yuv``), a lens with lateral chromatic
+    aberration (``Conditions.lateral_ca_px``); default lossless RGB through a perfect lens."""
     from .sim.presets import JPEG_SAMPLINGS, YUV_FORMATS
 
     p.add_argument("--jpeg", type=int, default=0, metavar="QUALITY",
@@ -113,17 +114,22 @@ def add_jpeg_arguments(p) -> None:
     p.add_argument("--yuv", default="", choices=("",) + YUV_FORMATS,
                    help="the camera delivers YUYV (4:2:2) or I420 (4:2:0) frames, converted to RGB by OpenCV "
                         "(default: RGB frames)")
+    p.add_argument("--lateral-ca-px", type=float, default=0.0, metavar="PX",
+                   help="the camera lens's lateral chromatic aberration: the blue image lies PX further out than "
+                        "the green one at the frame's corners, the red one as far in (default 0)")
 
 
 def jpeg_fields(args) -> dict:
     """The :class:`gbscan.sim.Conditions` fields of :func:`add_jpeg_arguments`' options."""
-    return {"jpeg_quality": int(args.jpeg), "jpeg_sampling": args.jpeg_sampling, "yuv": getattr(args, "yuv", "")}
+    return {"jpeg_quality": int(args.jpeg), "jpeg_sampling": args.jpeg_sampling, "yuv": getattr(args, "yuv", ""),
+            "lateral_ca_px": float(getattr(args, "lateral_ca_px", 0.0))}
 
 
 def jpeg_label(args) -> str:
     """", JPEG q85 4:2:0" (", YUYV") for the options of :func:`add_jpeg_arguments`, "" for RGB frames."""
     yuv = f", {args.yuv.upper()}" if getattr(args, "yuv", "") else ""
-    return (f", JPEG q{args.jpeg} {args.jpeg_sampling}" if args.jpeg else "") + yuv
+    ca = f", lateral CA {args.lateral_ca_px:g} px" if getattr(args, "lateral_ca_px", 0.0) else ""
+    return (f", JPEG q{args.jpeg} {args.jpeg_sampling}" if args.jpeg else "") + yuv + ca
 
 
 #: the colour of ``--ambient`` room light in the camera's red, green and blue (warm: tungsten or

@@ -31,6 +31,9 @@ the unwrapping) or over its green / blue labelled pixels:
   against the stripes' width;
 * ``resample``: the factor the decoder shrank the frame by (1: decoded as it is);
 * ``reported_frac`` and ``lost_frac`` (per decoder reason) of the stripe area;
+* ``lateral_ca_px``, ``lateral_ca_corrected``: the blue stripe edges' offset from the green ones at
+  the frame's sides and whether the decoder corrected it (``stats['lateral_ca']``,
+  :func:`gbscan.decode.lateral_chromatic_aberration`);
 * ``chroma_score``, ``chroma_subsampled``, ``withheld``: whether the frame's colour was stored at
   half the horizontal resolution (:func:`gbscan.chroma.chroma_check`, from the decode's stats) and
   whether the decoder withheld its absolute index for it (``DecodeParams.subsampled_chroma``).
@@ -67,6 +70,12 @@ STRIPE_PX_RANGE = (2.5, 12.0)
 #: 0.07 (Bayer 0.11), unindexed up to 0.12 (multi-object; Bayer 0.17); hard: 0.27-0.70 / 0.03-0.15.
 ISOLATED_WARN = 0.2
 UNINDEXED_WARN = 0.25
+#: lateral chromatic aberration (blue against green edges at the frame's sides, camera px) above this:
+#: corrected, but a warning.  The sweep's 48 scenes with the blue image magnified against the green
+#: one (0.32 / 0.8 px at the sides): column RMS 0.20 / 0.49 projector px uncorrected, 0.10 / 0.14
+#: corrected (0.094 without aberration), and 7 / 94 pixels on wrong stripes either way (welds at
+#: silhouettes, where the shifted blue image mixes two surfaces' colours)
+LATERAL_CA_WARN_PX = 0.5
 #: below this many labelled pixels (and this share of the image) nothing is measured but "no stripes"
 MIN_LABELLED_PX = 200
 MIN_LABELLED_FRAC = 0.005
@@ -116,6 +125,8 @@ class FrameCheck:
     chroma_score: float = float("nan")
     chroma_subsampled: bool = False
     withheld: bool = False
+    lateral_ca_px: float = float("nan")
+    lateral_ca_corrected: bool = False
     findings: list = field(default_factory=list)
 
     def warnings(self) -> list:
@@ -228,6 +239,7 @@ def check_frame(image_rgb: np.ndarray, stripemap, params=None) -> FrameCheck:
         mg = _median(hg)
         bg = _median(hb) / mg if mg > 0 else nan
     sat = float((mask == SATURATED).sum()) / n_area if n_area else 0.0
+    lca = stripemap.stats.get("lateral_ca")
     ch = stripemap.stats.get("chroma")
     if ch is None:   # decoded without the check (DecodeParams.subsampled_chroma="off"): measure it here
         from .chroma import chroma_check
@@ -242,7 +254,8 @@ def check_frame(image_rgb: np.ndarray, stripemap, params=None) -> FrameCheck:
         stripe_camera_px=stripe_camera_px(stripemap.column, lab, int(stripemap.pattern.stripe_px)),
         window_px=window, resample=resample,
         chroma_score=nan if ch.get("score") is None else float(ch["score"]),
-        chroma_subsampled=bool(ch.get("subsampled")), withheld=bool(ch.get("withheld")))
+        chroma_subsampled=bool(ch.get("subsampled")), withheld=bool(ch.get("withheld")),
+        lateral_ca_px=float(lca["edge_px"]) if lca else nan, lateral_ca_corrected=bool(lca and lca["corrected"]))
     chk.findings = findings(chk)
     return chk
 
@@ -275,6 +288,16 @@ def findings(c: FrameCheck) -> list:
         else:
             warn("chroma", f"{what}: decoded anyway (subsampled_chroma=decode), expect regions on wrong stripes; "
                            f"{fix}", "chroma subsampled (YUYV/MJPEG): use RGB or raw frames")
+    if c.lateral_ca_corrected:
+        text = (f"the blue stripe edges lie {c.lateral_ca_px:.2f} camera px off the green ones at the frame's "
+                "sides (the lens's lateral chromatic aberration, or the projector's): measured on the stripes and "
+                "corrected")
+        if c.lateral_ca_px > LATERAL_CA_WARN_PX:
+            warn("lateral_ca", text + "; so large an offset also blurs the colours apart near silhouettes: a lens "
+                                      "with less chromatic aberration, or stop the camera's lens down",
+                 f"chromatic aberration {c.lateral_ca_px:.1f} px: a better lens")
+        else:
+            out.append(Finding("lateral_ca", "info", text, f"chromatic aberration {c.lateral_ca_px:.2f} px: corrected"))
     if c.saturated_frac > SATURATED_WARN:
         warn("saturated", f"{100 * c.saturated_frac:.1f} % of the stripe area is saturated: lower the camera's "
                           "exposure (or the projector's brightness); saturated pixels are dropped",
@@ -374,6 +397,9 @@ def report(c: FrameCheck) -> str:
         f"{100 * c.saturated_frac:.2f} %",
         f"contrast {f(c.contrast, '.2f')}; ambient (red) {f(c.ambient_ratio, '.2f')}; blue/green "
         f"{f(c.blue_green_ratio, '.2f')}; {f(c.stripe_camera_px, '.1f')} camera px per stripe",
+        "lateral chromatic aberration (blue against green edges at the frame's sides): "
+        + ("n/a" if not np.isfinite(c.lateral_ca_px) else
+           f"{c.lateral_ca_px:.2f} px{', corrected' if c.lateral_ca_corrected else ' (not corrected: unclear or small)'}"),
         "colour resolution: " + ("n/a" if not np.isfinite(c.chroma_score) else
                                  f"{'half (chroma subsampled)' if c.chroma_subsampled else 'full'} along the rows "
                                  f"(phase score {c.chroma_score:.2f}; under 0.5: subsampled)"),

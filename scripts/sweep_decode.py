@@ -186,8 +186,8 @@ def _conditions(preset: str, ss: int, jpeg: dict | None):
 
 def load_or_render(name, preset, seed, ss, factory, cache: Path | None, jpeg: dict | None = None):
     """(image, truth_column, depth_edge, lit) of one scene, from the cache when there; ``jpeg``:
-    :class:`gbscan.sim.Conditions` JPEG and YUV fields (frames stored as JPEG, delivered as YUV),
-    None: lossless RGB."""
+    :class:`gbscan.sim.Conditions` JPEG, YUV and lens fields (frames stored as JPEG, delivered as
+    YUV, a lens with lateral chromatic aberration), None: lossless RGB."""
     from gbscan import sim
     from gbscan.io import save_npz
     from gbscan.pattern import PatternSpec, render_pattern
@@ -200,6 +200,8 @@ def load_or_render(name, preset, seed, ss, factory, cache: Path | None, jpeg: di
     tag = ""
     if jpeg and jpeg["jpeg_quality"]:
         tag = f"_jpeg{jpeg['jpeg_quality']}_{jpeg['jpeg_sampling'].replace(':', '')}"
+    if jpeg and jpeg.get("lateral_ca_px"):
+        tag += f"_ca{jpeg['lateral_ca_px']:g}"
     f = cache / f"{name}_{preset.replace('+', '_').replace('@', '_').replace('/', '_')}_ss{ss}{tag}.npz" \
         if cache is not None else None
     if f is not None and f.exists():

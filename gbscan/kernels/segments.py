@@ -642,6 +642,96 @@ def subpixel_junctions(gn, bn, seg_row, j_ua, j_ub, j_la, j_lb, seg_u0, seg_u1, 
 
 
 @njit(cache=True, nogil=True)
+def channel_edge_offsets(gn, bn, seg_row, j_ua, j_ub, j_la, seg_u0, seg_u1, j_seg, sel, jx, ox, max_px):
+    """The blue edge's offset from the green edge at the green|blue junctions ``sel`` (int64):
+    each channel's own crossing of 1/2, found as :func:`subpixel_junctions` finds a green|cyan
+    (``bn``) and a blue|cyan (``gn``) boundary, nearest the runs' junction.  Returns ``x`` (the
+    junctions' columns ``jx``) and ``d = x_blue - x_green`` (float64, camera px) of those where
+    both were found and ``|d| < max_px`` (``gbscan.decode.lateral_chromatic_aberration``)."""
+    n = sel.shape[0]
+    xs = np.empty(n, np.float64)
+    ds = np.empty(n, np.float64)
+    m = 0
+    for i in range(n):
+        j = sel[i]
+        s = j_seg[j]
+        v = seg_row[s]
+        a = max(j_ua[j] - 1, seg_u0[s])
+        b = min(j_ub[j] + 1, seg_u1[s])
+        mid = 0.5 * ((j_ua[j] + ox) + (j_ub[j] + ox))
+        sg = 1.0 if j_la[j] == GREEN else -1.0     # green left of blue: blue rises, green falls
+        xb = np.nan
+        db = 1e9
+        xg = np.nan
+        dg = 1e9
+        fb0 = 0.0
+        fg0 = 0.0
+        for u in range(a, b + 1):
+            fb = sg * (bn[v, u] - 0.5)
+            fg = -sg * (gn[v, u] - 0.5)
+            if u > a:
+                xb, db = _sj_cross(u, fb0, fb, ox, mid, xb, db)
+                xg, dg = _sj_cross(u, fg0, fg, ox, mid, xg, dg)
+            fb0 = fb
+            fg0 = fg
+        d = xb - xg
+        if np.isfinite(d) and abs(d) < max_px and np.isfinite(jx[j]):
+            xs[m] = jx[j]
+            ds[m] = d
+            m += 1
+    return xs[:m], ds[:m]
+
+
+@njit(cache=True, nogil=True)
+def robust_line(x, y, trims):
+    """``y = a + k x`` by least squares, refitted ``trims`` times on the points within 3 robust
+    sigmas (1.4826 median absolute residual, over about 1024 evenly spaced points) of the last fit.
+    Returns (a, k, sigma, points, std of x) of the last fit (sigma: the robust sigma of its points'
+    residuals)."""
+    n = x.shape[0]
+    keep = np.ones(n, np.bool_)
+    a = 0.0
+    k = 0.0
+    r = np.empty(n, np.float64)
+    step = max(n // 1024, 1)    # the medians on every step-th residual (about 1024 of them)
+    for it in range(trims + 1):
+        sx = 0.0
+        sy = 0.0
+        c = 0
+        for i in range(n):
+            if keep[i]:
+                sx += x[i]
+                sy += y[i]
+                c += 1
+        if c < 2:
+            return np.nan, np.nan, np.nan, c, 0.0
+        xm = sx / c
+        ym = sy / c
+        sxx = 0.0
+        sxy = 0.0
+        for i in range(n):
+            if keep[i]:
+                dx = x[i] - xm
+                sxx += dx * dx
+                sxy += dx * (y[i] - ym)
+        k = sxy / max(sxx, 1e-12)
+        a = ym - k * xm
+        for i in range(n):
+            r[i] = abs(y[i] - (a + k * x[i]))
+        if it < trims:
+            lim = 3.0 * 1.4826 * np.median(r[::step]) + 1e-9
+            for i in range(n):
+                keep[i] = r[i] <= lim
+    kept = np.empty(c, np.float64)
+    q = 0
+    for i in range(n):
+        if keep[i]:
+            kept[q] = r[i]
+            q += 1
+    return a, k, 1.4826 * np.median(kept[::max(c // 1024, 1)]), c, np.sqrt(sxx / c)
+
+
+@njit(cache=True, nogil=True)
 def junction_index(j_rel, j_seg, seg_P):
     """Boundary index of every junction (float64, as :func:`interpolate_columns` takes it): its
     relative index within its segment ``j_rel`` plus the segment's offset ``seg_P[j_seg]``."""

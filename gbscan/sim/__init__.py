@@ -20,10 +20,11 @@ from ..rig import paper_rig
 from . import scenes
 from .presets import PRESETS, Conditions, preset
 from .render import (Render, Trace, camera_image, column_errors, decode_dn, encode, incidence_deg, linear_signal,
-                     point_errors_mm, render, render_moving, render_traced, trace, yuv_round_trip)
+                     lateral_ca, point_errors_mm, render, render_moving, render_traced, trace,
+                     yuv_round_trip)
 from .scenes import Scene, combine
 
 __all__ = ["paper_rig", "scenes", "Conditions", "PRESETS", "preset", "Render", "render", "render_moving", "Scene",
            "combine",
            "encode", "decode_dn", "Trace", "trace", "render_traced", "linear_signal", "camera_image",
-           "incidence_deg", "point_errors_mm", "column_errors", "yuv_round_trip"]
+           "incidence_deg", "point_errors_mm", "column_errors", "yuv_round_trip", "lateral_ca"]

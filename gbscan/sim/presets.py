@@ -10,7 +10,8 @@ Signal chain (see :mod:`gbscan.sim.render`)::
     proj_defocus_px_per_100mm per 100 mm away from focus) --> irradiance
     E = radiance * cos(incidence) / (distance_to_projector / ref_distance_mm)**2
     camera linear signal = exposure * albedo * albedo_gain_rgb * (crosstalk @ E + ambient_rgb)
-    --> supersample average --> vignetting --> camera blur (cam_sigma_px) --> motion blur
+    --> supersample average --> [lateral chromatic aberration: lateral_ca_px] --> vignetting
+    --> camera blur (cam_sigma_px) --> motion blur
     --> [optional Bayer mosaic] --> shot noise (Gaussian, variance = signal / full_well_e)
     + read noise (read_noise_dn / 255) --> encode ~255 * lin**(1/gamma) (small linear toe at
     black, see gbscan.sim.render.encode) --> round, clip to 0..255 --> [demosaic]
@@ -65,6 +66,8 @@ class Conditions:
     exposure: float = 0.8                # linear camera value of albedo 1, white, head-on, ref distance
     albedo_gain_rgb: tuple = (1.0, 1.0, 1.0)  # scales every surface's albedo (dark / tinted scenes)
     vignetting: float = 0.1              # relative fall-off at the image corner (quadratic in radius)
+    lateral_ca_px: float = 0.0           # lateral chromatic aberration: blue lies this far out from
+                                         # green at the farthest corner (red as far in), px
     cam_sigma_px: float = 0.5            # camera blur (optics + demosaicing), Gaussian sigma px
     motion_px: float = 0.0               # linear motion blur length (camera px)
     motion_deg: float = 0.0              # its direction (0 = along image x)
@@ -87,6 +90,8 @@ class Conditions:
         c = np.asarray(self.crosstalk, dtype=np.float64)
         if c.shape != (3, 3) or np.any(c < 0):
             raise GBError("crosstalk must be a non-negative 3x3 matrix (camera channel x projector channel)")
+        if not (np.isfinite(self.lateral_ca_px) and abs(float(self.lateral_ca_px)) <= 10):
+            raise GBError(f"lateral_ca_px must be within [-10, 10] px, got {self.lateral_ca_px!r}")
         for name in ("proj_gamma", "gamma", "exposure", "ref_distance_mm", "proj_focus_mm"):
             if not float(getattr(self, name)) > 0:
                 raise GBError(f"condition {name} must be positive, got {getattr(self, name)}")

@@ -434,11 +434,14 @@ def linear_signal(tr: Trace, projector_rgb: np.ndarray) -> np.ndarray:
 
 
 def camera_image(linear: np.ndarray, cam: Camera, cond: Conditions, rng: np.random.Generator) -> np.ndarray:
-    """Linear signal (H, W, 3) -> 8-bit camera image: vignetting, blur, motion, noise, encoding."""
+    """Linear signal (H, W, 3) -> 8-bit camera image: lateral chromatic aberration, vignetting, blur,
+    motion, noise, encoding."""
     import cv2
 
     H, W = linear.shape[:2]
     img = linear.astype(np.float32, copy=True)
+    if cond.lateral_ca_px:
+        img = lateral_ca(img, (float(cam.K[0, 2]), float(cam.K[1, 2])), cond.lateral_ca_px)
     if cond.vignetting > 0:
         q = cam.pixel_grid()
         c = np.array([cam.K[0, 2], cam.K[1, 2]])
@@ -459,6 +462,28 @@ def camera_image(linear: np.ndarray, cam: Camera, cond: Conditions, rng: np.rand
         noisy = noisy + np.float32(cond.read_noise_dn / 255.0) * rng.standard_normal(img.shape, np.float32)
     return _yuv_round_trip(_jpeg_round_trip(np.clip(np.rint(encode(noisy, cond.gamma)), 0, 255).astype(np.uint8), cond),
                            cond)
+
+
+def lateral_ca(img: np.ndarray, centre: tuple[float, float], corner_px: float) -> np.ndarray:
+    """A lens's lateral chromatic aberration on an (H, W, 3) float image (R, G, B): the blue image
+    magnified about ``centre`` (x, y, px) so that it lies ``corner_px`` further out than the green
+    one at the frame's farthest corner, the red one as far in (bilinear resampling; green as it
+    is).  Negative ``corner_px``: blue inward, red outward."""
+    import cv2
+
+    H, W = img.shape[:2]
+    cx, cy = centre
+    rc = max(np.hypot(x - cx, y - cy) for x in (0.0, W - 1.0) for y in (0.0, H - 1.0))
+    m = float(corner_px) / rc
+    xs = np.arange(W, dtype=np.float32)[None, :] - np.float32(cx)
+    ys = np.arange(H, dtype=np.float32)[:, None] - np.float32(cy)
+    out = img.copy()
+    for c, mag in ((0, 1.0 - m), (2, 1.0 + m)):
+        mx = np.broadcast_to(np.float32(cx) + xs / np.float32(mag), (H, W)).astype(np.float32)
+        my = np.broadcast_to(np.float32(cy) + ys / np.float32(mag), (H, W)).astype(np.float32)
+        out[..., c] = cv2.remap(np.ascontiguousarray(img[..., c]), mx, my, cv2.INTER_LINEAR,
+                                borderMode=cv2.BORDER_REPLICATE)
+    return out
 
 
 _JPEG_SAMPLING_FLAGS = {"4:4:4": "IMWRITE_JPEG_SAMPLING_FACTOR_444", "4:2:2": "IMWRITE_JPEG_SAMPLING_FACTOR_422",
