@@ -66,8 +66,9 @@ REASONS = {
 
 #: DecodeParams.subsampled_chroma's choices
 SUBSAMPLED_CHROMA = ("withhold", "decode", "off")
-#: a chroma-subsampled frame decoded shrunk by at least this (DecodeParams.resample: a camera with
-#: more pixels than the stripes need) is reported: each decoded pixel averages whole pixel pairs.
+#: a frame decoded shrunk by at least this (DecodeParams.resample: a camera with more pixels than
+#: the stripes need) is not checked for chroma subsampling, and reported: each decoded pixel
+#: averages whole pixel pairs.
 #: Measured (scripts/resample_study.py --yuv, twenty-first session): see docs/method.md, "Camera frames"
 SUBSAMPLED_CHROMA_SHRINK = 2.0
 
@@ -427,22 +428,24 @@ class DecodeParams:
         stripes ~3.5: fake cyan appears at green-blue transitions and whole regions are indexed on
         the wrong stripe (``scripts/sweep_decode.py``, 48 scenes, pixels on a wrong stripe off depth
         edges: 0 in full colour; 2039 / 830 through a YUYV / I420 camera as OpenCV converts them,
-        ``--yuv``; 352 as JPEG q95 4:2:2, 111 as JPEG q90 4:2:0; scans up to 233 mm off).  ``"withhold"`` (the default): the frame is decoded, but no
-        pixel is reported -- every pixel it would have reported is ``unindexed``, the relative
-        unwrapping (``relative``, ``region``, ``column_relative``) is kept, and ``stats['why']``
-        says why -- unless the frame was decoded shrunk by ``SUBSAMPLED_CHROMA_SHRINK`` (2) or
-        more (``resample``: a camera with more pixels than its stripes need), where each decoded
-        pixel averages whole pixel pairs and the stripes keep their colours.  ``"decode"``: reported as a full-colour frame would be (wrong stripes
-        possible; the check still runs).  ``"off"``: no check (saves about 1 ms a frame).
+        ``--yuv``; 352 as JPEG q95 4:2:2, 111 as JPEG q90 4:2:0; scans up to 233 mm off).
+        ``"withhold"`` (the default): the frame is decoded, but no pixel is reported -- every pixel
+        it would have reported is ``unindexed``, the relative unwrapping (``relative``, ``region``,
+        ``column_relative``) is kept, and ``stats['why']`` says why.  A frame decoded shrunk by
+        ``SUBSAMPLED_CHROMA_SHRINK`` (2) or more (``resample``: a camera with more pixels than its
+        stripes need) is not checked: each decoded pixel averages whole pixel pairs and the
+        stripes keep their colours.  ``"decode"``: reported as a full-colour frame would be (wrong
+        stripes possible; the check still runs).  ``"off"``: no check (0.9-1.3 ms a frame less).
     lateral_ca, lateral_ca_t, lateral_ca_min_px : measure the lens's lateral chromatic aberration on
         the frame (the blue stripe edges against the green ones, :func:`lateral_chromatic_aberration`)
         and, when it is clear (slope ``lateral_ca_t`` standard errors from 0) and reaches
         ``lateral_ca_min_px`` camera px among the boundaries, move every boundary to its green
-        edge (``stats['lateral_ca']``).  Without it a blue image 0.4 px larger than the green one at
-        the frame's corners doubles the sweep's column RMS (0.094 -> 0.20 projector px), 1 px
-        quintuples it; none of the sweeps' 189 frames without aberration is corrected (t at most
-        3.1 where the fit scatters under ``CA_MAX_SIGMA_PX``; the hard preset's fits scatter ~1.9
-        px), so their results are the same bit for bit.  0.3-0.4 ms a frame.
+        edge (``stats['lateral_ca']``).  The sweep through a simulated lens whose blue image is 0.5
+        px larger than the green one at the corners (``sim.Conditions.lateral_ca_px``): column RMS
+        0.244 projector px uncorrected, 0.107 corrected, 0.094 without aberration; none of the
+        sweeps' 189 frames without aberration is corrected (t at most 3.1 where the fit scatters
+        under ``CA_MAX_SIGMA_PX``; the hard preset's fits scatter ~1.9 px), so their results are
+        the same bit for bit.  0.3-0.4 ms a frame.
     """
 
     blur_sigma_along_px: float | None = None
@@ -2041,6 +2044,11 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
     carries ``resample`` (the factor), ``decoded_size`` and ``ms`` ``resample`` / ``upsample``.
     ``stats['stripe_camera_px']``: the frame's camera px per stripe read from its colour runs.
 
+    The frame's colour resolution is checked first (``DecodeParams.subsampled_chroma``: a
+    chroma-subsampled frame's absolute index is withheld, ``stats['chroma']``) and the lens's
+    lateral chromatic aberration measured on its boundaries (``DecodeParams.lateral_ca``,
+    ``stats['lateral_ca']``).
+
     Returns a :class:`StripeMap`.  Raises GBError for unusable input (grey image, bad dtype,
     NaN); an image without a usable stripe signal gives an empty StripeMap whose ``stats['why']``
     says why.
@@ -2051,21 +2059,22 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         raise GBError(f"decode: params must be a DecodeParams, got {type(params).__name__}")
     t0 = time.perf_counter()
     img = validate_image(image_rgb)
-    if params.subsampled_chroma == "off":
-        return _decode(img, pattern, params, keep_stages, stripe_range, t0)
+    shrink = choose_resample(img, params)
+    # a frame decoded shrunk by 2 or more averages each pixel pair's shared colour into one decoded
+    # pixel: its stripes keep their colours, and it is not checked (see SUBSAMPLED_CHROMA_SHRINK)
+    if params.subsampled_chroma == "off" or shrink[0] >= SUBSAMPLED_CHROMA_SHRINK:
+        return _decode(img, pattern, params, keep_stages, stripe_range, t0, shrink)
     from .chroma import chroma_check
 
-    chk = chroma_check(img)
     t1 = time.perf_counter()
-    sm = _decode(img, pattern, params, keep_stages, stripe_range, t1)
+    chk = chroma_check(img)
+    t2 = time.perf_counter()
+    sm = _decode(img, pattern, params, keep_stages, stripe_range, t0 + (t2 - t1), shrink)
     ms = sm.stats.setdefault("ms", {})
-    ms["chroma"] = round((t1 - t0) * 1e3, 3)
+    ms["chroma"] = round((t2 - t1) * 1e3, 3)
     if "total" in ms:
         ms["total"] = round(ms["total"] + ms["chroma"], 3)
-    # a frame decoded shrunk by 2 or more averages each pixel pair's shared colour into one decoded
-    # pixel: its stripes keep their colours (see SUBSAMPLED_CHROMA_SHRINK)
-    withheld = (chk.subsampled and params.subsampled_chroma == "withhold"
-                and float(sm.stats.get("resample", 1.0)) < SUBSAMPLED_CHROMA_SHRINK)
+    withheld = chk.subsampled and params.subsampled_chroma == "withhold"
     sm.stats["chroma"] = {"score": None if not math.isfinite(chk.score) else round(chk.score, 3),
                           "subsampled": chk.subsampled, "withheld": withheld}
     if withheld:
@@ -2093,8 +2102,9 @@ def withhold(sm: StripeMap, why: str) -> StripeMap:
 
 
 def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_stages: bool,
-            stripe_range: np.ndarray | None, t0: float) -> StripeMap:
-    # decode() of a validated frame (its chroma checked or not); t0: the clock at its start
+            stripe_range: np.ndarray | None, t0: float, shrink: tuple | None = None) -> StripeMap:
+    # decode() of a validated frame (its chroma checked or not); t0: the clock at its start (the
+    # chroma check's time left out); shrink: choose_resample's answer for it, when known
     from . import kernels
     from . import unwrap as uw
 
@@ -2105,7 +2115,7 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
         if stripe_range.shape != (2, H, W) or stripe_range.dtype != np.float32:
             raise GBError(f"decode: stripe_range must be a (2, {H}, {W}) float32 array (low, high stripe per "
                           f"pixel), got {stripe_range.dtype} {stripe_range.shape}")
-    factor, frame_px = choose_resample(img, params)
+    factor, frame_px = choose_resample(img, params) if shrink is None else shrink
     if factor > 1.0:   # wide stripes in the camera: decode the frame shrunk to the validated width
         return _decode_resampled(img, factor, frame_px, pattern, params, keep_stages, stripe_range)
     snr = None

@@ -72,9 +72,10 @@ ISOLATED_WARN = 0.2
 UNINDEXED_WARN = 0.25
 #: lateral chromatic aberration (blue against green edges at the frame's sides, camera px) above this:
 #: corrected, but a warning.  The sweep's 48 scenes with the blue image magnified against the green
-#: one (0.32 / 0.8 px at the sides): column RMS 0.20 / 0.49 projector px uncorrected, 0.10 / 0.14
-#: corrected (0.094 without aberration), and 7 / 94 pixels on wrong stripes either way (welds at
-#: silhouettes, where the shifted blue image mixes two surfaces' colours)
+#: one (applied to the finished frames; 0.32 / 0.8 px at the sides): column RMS 0.20 / 0.49
+#: projector px uncorrected, 0.10 / 0.14 corrected (0.094 without aberration), and 7 / 94 pixels on
+#: wrong stripes either way (welds at silhouettes, where the shifted blue image mixes two surfaces'
+#: colours)
 LATERAL_CA_WARN_PX = 0.5
 #: below this many labelled pixels (and this share of the image) nothing is measured but "no stripes"
 MIN_LABELLED_PX = 200
@@ -293,8 +294,9 @@ def findings(c: FrameCheck) -> list:
                 "sides (the lens's lateral chromatic aberration, or the projector's): measured on the stripes and "
                 "corrected")
         if c.lateral_ca_px > LATERAL_CA_WARN_PX:
-            warn("lateral_ca", text + "; so large an offset also blurs the colours apart near silhouettes: a lens "
-                                      "with less chromatic aberration, or stop the camera's lens down",
+            warn("lateral_ca", text + "; so large an offset also mixes two surfaces' colours at silhouettes: a lens "
+                                      "with less lateral chromatic aberration, or the object nearer the frame's "
+                                      "centre, where it is smallest",
                  f"chromatic aberration {c.lateral_ca_px:.1f} px: a better lens")
         else:
             out.append(Finding("lateral_ca", "info", text, f"chromatic aberration {c.lateral_ca_px:.2f} px: corrected"))
