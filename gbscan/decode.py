@@ -2076,6 +2076,7 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         ms["total"] = round(ms["total"] + ms["chroma"], 3)
     withheld = chk.subsampled and params.subsampled_chroma == "withhold"
     sm.stats["chroma"] = {"score": None if not math.isfinite(chk.score) else round(chk.score, 3),
+                          "score_cosited": None if not math.isfinite(chk.score_cosited) else round(chk.score_cosited, 3),
                           "subsampled": chk.subsampled, "withheld": withheld}
     if withheld:
         withhold(sm, f"absolute stripe index withheld: {chk.describe()}; the stripes' colours smear and whole "

@@ -44,15 +44,32 @@ def _with_chroma(img: np.ndarray, interp: int | None, shift: int = 0) -> np.ndar
 
 
 # -- the check on its own -----------------------------------------------------------------------
+def _cosited(img: np.ndarray, cubic: bool, shift: int = 0) -> np.ndarray:
+    # Cb, Cr kept on the columns shift, shift + 2, ... and interpolated between them (linear, or the
+    # 4-tap cubic -1/16 9/16 9/16 -1/16), as MPEG-2 / H.264 site them
+    ycc = cv2.cvtColor(img, cv2.COLOR_RGB2YCrCb).astype(np.float32)
+    for c in (1, 2):
+        ch = ycc[:, shift:, c]
+        s = ch[:, ::2]
+        p = np.pad(s, ((0, 0), (1, 2)), mode="edge")
+        mid = (-p[:, :-3] + 9 * p[:, 1:-2] + 9 * p[:, 2:-1] - p[:, 3:]) / 16 if cubic else 0.5 * (p[:, 1:-2] + p[:, 2:-1])
+        ch[:, 1::2] = mid[:, :ch[:, 1::2].shape[1]]
+    return cv2.cvtColor(np.clip(np.rint(ycc), 0, 255).astype(np.uint8), cv2.COLOR_YCrCb2RGB)
+
+
 def test_random_colour_is_full_and_every_2x_upsampler_is_found():
     rng = np.random.default_rng(3)
     img = rng.integers(60, 256, (96, 160, 3), dtype=np.uint8)
     full = chroma_check(img)
-    assert full.score > 0.8 and not full.subsampled and full.samples > 2000
-    for interp in (cv2.INTER_NEAREST, cv2.INTER_LINEAR, cv2.INTER_CUBIC):
-        for shift in (0, 1):      # pairs at even or odd columns (a frame cropped by one column)
+    assert full.score > 0.8 and full.score_cosited > 0.8 and not full.subsampled and full.samples > 2000
+    for shift in (0, 1):      # pairs at even or odd columns (a frame cropped by one column)
+        for interp in (cv2.INTER_NEAREST, cv2.INTER_LINEAR, cv2.INTER_CUBIC):
             got = chroma_check(_with_chroma(img, interp, shift))
             assert got.subsampled and got.score < 0.1, (interp, shift, got)
+        for cubic in (False, True):
+            got = chroma_check(_cosited(img, cubic, shift))
+            assert got.subsampled and got.score_cosited < 0.1 and got.score > 0.5, (cubic, shift, got)
+            assert "co-sited" in got.describe()
 
 
 def test_simulated_cameras_full_colour_and_subsampled():
@@ -63,7 +80,7 @@ def test_simulated_cameras_full_colour_and_subsampled():
             "jpeg420": {"jpeg_quality": 90, "jpeg_sampling": "4:2:0"}}
     for name, cond in full.items():
         got = chroma_check(frame(**cond).image)
-        assert not got.subsampled and got.score > 0.7, (name, got)
+        assert not got.subsampled and got.score > 0.7 and got.score_cosited > 0.4, (name, got)
     for name, cond in half.items():
         got = chroma_check(frame(**cond).image)
         assert got.subsampled and got.score < 0.25, (name, got)
