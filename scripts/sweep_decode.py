@@ -18,6 +18,9 @@ pixel with the simulator's truth (``r.proj_xy``):
     python scripts/sweep_decode.py --cache DIR --blur-grid 1,1.25,1.5,1.75,2,2.25,2.5,2.75,3
     python scripts/sweep_decode.py --cache DIR --depth-range 400 1200   # with a working volume
     python scripts/sweep_decode.py --cache DIR --jpeg 90 --jpeg-sampling 4:4:4   # frames stored as JPEG
+    python scripts/sweep_decode.py --cache DIR --yuv yuyv --decode subsampled_chroma=decode
+                                   # a YUYV camera, decoded anyway (by default such frames are withheld)
+    python scripts/sweep_decode.py --cache DIR --lateral-ca-px 0.5   # a lens with lateral chromatic aberration
     python scripts/sweep_decode.py --cache DIR --set room-light   # warm and cool room light (44 frames)
     python scripts/sweep_decode.py --cache DIR --set clean        # the clean preset (16 frames)
     python scripts/sweep_decode.py --cache DIR --set baselines    # other baselines (33 frames)
