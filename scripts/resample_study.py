@@ -2,7 +2,7 @@
 
     python scripts/resample_study.py [--scales 1,2,3] [--scenes plane,sphere,head,multi_object]
                                      [--preset typical] [--seed 0] [--resample 0,1]
-                                     [--decode-param NAME=VALUE ...] [--yuv yuyv|i420]
+                                     [--decode-param NAME=VALUE ...] [--yuv yuyv|i420] [--jpeg Q]
 
 The paper rig's camera has 640x480 pixels (fx 800): a stripe of 8 projector px spans ~3.7
 camera px at 650 mm, the width the decoder's pixel-sized rules are tuned for.  A camera of
@@ -50,9 +50,9 @@ def main(argv=None) -> int:
     ap.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
                     help="a DecodeParams field off its default for every decode (repeatable; unwrap.NAME=VALUE for "
                          "the unwrapping's), e.g. crop=false")
-    ap.add_argument("--yuv", default="", choices=("", "yuyv", "i420"),
-                    help="the camera delivers YUYV (4:2:2) or I420 (4:2:0) frames, converted to RGB by OpenCV "
-                         "(gbscan.sim.yuv_round_trip; default RGB frames)")
+    from gbscan.cli_common import add_jpeg_arguments, jpeg_fields, jpeg_label
+
+    add_jpeg_arguments(ap)   # --jpeg, --jpeg-sampling, --yuv, --lateral-ca-px: how the camera delivers frames
     args = ap.parse_args(argv)
     try:
         scales = [float(x) for x in args.scales.split(",") if x.strip()]
@@ -89,9 +89,12 @@ def main(argv=None) -> int:
         params = {f: DecodeParams(**{**over, "resample": f}) for f in factors}
     except GBError as e:
         ap.error(str(e))
-    cond = dataclasses.replace(sim.preset(args.preset), supersample=args.supersample)
+    try:
+        cond = dataclasses.replace(sim.preset(args.preset), supersample=args.supersample, **jpeg_fields(args))
+    except GBError as e:
+        ap.error(str(e))
     print(f"# resample study, paper rig, camera 640x480 x scale, preset {args.preset}, seed {args.seed}, "
-          f"supersample {args.supersample}, 8 px stripes at 650 mm" + (f", {args.yuv.upper()} camera" if args.yuv else ""))
+          f"supersample {args.supersample}, 8 px stripes at 650 mm{jpeg_label(args)}")
     print(f"{'scene':13s} {'camera':>9s} {'px/stripe':>9s} {'est.':>5s} {'resample':>8s} {'used':>5s} "
           f"{'reported %':>10s} {'wrong':>6s} {'wrong_edge':>10s} {'col RMS':>7s} {'ms':>7s}")
     for scale in scales:
@@ -99,8 +102,6 @@ def main(argv=None) -> int:
         for name in names:
             print(f"rendering {name} at {rig.camera.width}x{rig.camera.height} ...", file=sys.stderr, flush=True)
             r = sim.render(rig, getattr(sim.scenes, name)(), render_pattern(spec), cond, seed=args.seed)
-            if args.yuv:
-                r = dataclasses.replace(r, image=sim.yuv_round_trip(r.image, args.yuv))
             truth = r.proj_xy[..., 0]
             true_px = spec.stripe_px / float(np.nanmedian(np.abs(np.diff(truth, axis=1))))
             est, _ = frame_stripe_px(r.image)

@@ -684,51 +684,41 @@ def channel_edge_offsets(gn, bn, seg_row, j_ua, j_ub, j_la, seg_u0, seg_u1, j_se
 
 @njit(cache=True, nogil=True)
 def robust_line(x, y, trims):
-    """``y = a + k x`` by least squares, refitted ``trims`` times on the points within 3 robust
-    sigmas (1.4826 median absolute residual, over about 1024 evenly spaced points) of the last fit.
-    Returns (a, k, sigma, points, std of x) of the last fit (sigma: the robust sigma of its points'
-    residuals)."""
+    """``y = a + k x`` by least squares (the sums of ``_common.fit_add`` / ``fit_slope``), refitted
+    ``trims`` times on the points within 3 robust sigmas (1.4826 median absolute residual, over
+    about 1024 evenly spaced points) of the last fit.  Returns (a, k, sigma, points, std of x) of
+    the last fit (sigma: the robust sigma of its points' residuals)."""
     n = x.shape[0]
     keep = np.ones(n, np.bool_)
     a = 0.0
     k = 0.0
     r = np.empty(n, np.float64)
+    acc = np.zeros(5, np.float64)
     step = max(n // 1024, 1)    # the medians on every step-th residual (about 1024 of them)
     for it in range(trims + 1):
-        sx = 0.0
-        sy = 0.0
-        c = 0
+        acc[:] = 0.0
         for i in range(n):
             if keep[i]:
-                sx += x[i]
-                sy += y[i]
-                c += 1
-        if c < 2:
-            return np.nan, np.nan, np.nan, c, 0.0
-        xm = sx / c
-        ym = sy / c
-        sxx = 0.0
-        sxy = 0.0
-        for i in range(n):
-            if keep[i]:
-                dx = x[i] - xm
-                sxx += dx * dx
-                sxy += dx * (y[i] - ym)
-        k = sxy / max(sxx, 1e-12)
-        a = ym - k * xm
+                fit_add(acc, x[i], y[i])
+        k = fit_slope(acc, 2)
+        if k != k:
+            return np.nan, np.nan, np.nan, int(acc[0]), 0.0
+        a = (acc[2] - k * acc[1]) / acc[0]
         for i in range(n):
             r[i] = abs(y[i] - (a + k * x[i]))
         if it < trims:
             lim = 3.0 * 1.4826 * np.median(r[::step]) + 1e-9
             for i in range(n):
                 keep[i] = r[i] <= lim
+    c = int(acc[0])
     kept = np.empty(c, np.float64)
     q = 0
     for i in range(n):
         if keep[i]:
             kept[q] = r[i]
             q += 1
-    return a, k, 1.4826 * np.median(kept[::max(c // 1024, 1)]), c, np.sqrt(sxx / c)
+    xm = acc[1] / c
+    return a, k, 1.4826 * np.median(kept[::max(c // 1024, 1)]), c, np.sqrt(max(acc[3] / c - xm * xm, 0.0))
 
 
 @njit(cache=True, nogil=True)
