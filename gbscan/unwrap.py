@@ -154,6 +154,17 @@ class UnwrapParams:
         the clean preset's multi-object scene 14 -> 0 wrong pixels off depth edges per seed; the
         48-scene sweep 83.76 -> 83.75 % reported, 150 -> 147 wrong on depth edges; JPEG q95
         4:4:4 63 -> 29 off them (docs/history.md, sixth session).
+    conflict_persist_rows : a cyan run on a non-marker stripe between two runs of one colour (a
+        marker's ``G C G`` or ``B C B``, not a fringe at a green|blue boundary nor a mixed pixel at
+        a stretch's end) whose middle column stays cyan on the same stripe of the region for this
+        many consecutive rows is a decisive disagreement alone: a marker of another surface, not a
+        glint (0 disables).  At a horizontal contact a short strip of the surface above (3 stripes
+        of a 7-row marker) links to the one below where their stripes line up, an even number
+        apart, and holds one disagreement a row.  Sweep of 48 scenes through a lens with lateral
+        chromatic aberration of 0.5 px: 2 -> 0 wrong pixels off depth edges (79 -> 66 on them);
+        the same aberration applied to the finished frames at 0.4 px 7 -> 0, a luma sharpening of
+        1.0 4 -> 0; the lossless sweep, room light, clean, baselines, JPEG 4:4:4 and the blur
+        grid at 1 / 2 / 3 px unchanged bit for bit (docs/history.md, twenty-second session).
     link_votes : a component that cannot be indexed alone (too small, too few markers) is indexed
         through the reported pixels around it when at least this many column-continuity votes
         agree on its offset (:func:`link_components`; 0 disables).
@@ -330,6 +341,7 @@ class UnwrapParams:
     conflict_events: int = 2
     conflict_clean_level: float = 0.15
     conflict_confirm: bool = True
+    conflict_persist_rows: int = 3
     link_votes: int = 8
     link_lines: int = 3
     link_tol_px: float = 2.0
@@ -375,6 +387,9 @@ class UnwrapParams:
         if int(self.max_gap_px) < 0 or int(self.spike_px) < 0 or int(self.marker_flank_px) < 0:
             raise GBError(f"UnwrapParams.max_gap_px, spike_px and marker_flank_px must be >= 0, got "
                           f"{self.max_gap_px}, {self.spike_px}, {self.marker_flank_px}")
+        if int(self.conflict_persist_rows) < 0 or int(self.conflict_persist_rows) == 1:
+            raise GBError(f"UnwrapParams.conflict_persist_rows must be 0 (off) or >= 2, got "
+                          f"{self.conflict_persist_rows}")
         if int(self.link_votes) < 0 or int(self.link_lines) < 1 or int(self.link_gap_px) < 0:
             raise GBError("UnwrapParams.link_votes and link_gap_px must be >= 0, link_lines >= 1")
         if not float(self.index_margin_events) >= 0:
@@ -1133,6 +1148,10 @@ def marker_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, patter
     other channel dark, no missed marker) is decisive alone: a strip of another surface welded in
     where only one of its stripes meets a marker of the region.
 
+    A cyan run that a marker's flanks enclose and that stays on its stripe for
+    ``conflict_persist_rows`` rows of the region is decisive alone as well: a marker of another
+    surface, welded in as a short strip at a horizontal contact.
+
     Returns (n, 3) int32 spans ``(row, u_first, u_last)`` (inclusive; may overlap), empty for the
     pure pattern; :func:`spans_mask` turns them into an (H, W) bool image.
     """
@@ -1153,7 +1172,9 @@ def marker_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, patter
                                           idx.indexed.astype(np.bool_), is_marker, int(params.conflict_run_px),
                                           int(params.conflict_events),
                                           float(params.conflict_clean_level) if clean else 0.0,
-                                          bool(params.conflict_confirm))
+                                          bool(params.conflict_confirm),
+                                          np.ascontiguousarray(un.region, dtype=np.int32),
+                                          int(params.conflict_persist_rows))
 
 
 #: RegionIndex.why of a region indexed once the row stretches its markers contradict were taken out

@@ -273,6 +273,47 @@ def test_marker_conflicts_ignore_a_single_missed_marker():
         uw.UnwrapParams(conflict_events=0)
 
 
+def test_marker_conflicts_reject_a_short_strip_by_its_persistent_marker():
+    """At a horizontal contact a strip of 3 stripes of the surface above (its marker 49 between
+    48 and 50) lines up with stripes 38-40 of the surface below, 10 stripes off, and ends there
+    (a silhouette): one disagreement a row, too few alone (``conflict_events``).  Its marker stays
+    cyan on one stripe for 6 rows, which no glint does: decisive
+    (``UnwrapParams.conflict_persist_rows``), and the rows go from the last agreeing marker (37)
+    to the strip's end.  Not decisive: the same strip over 2 rows, or cut after its marker (a cyan
+    run without its second flank: a mixed pixel at a silhouette looks the same)."""
+    spec = PatternSpec()
+    lab_all = spec.stripe_labels()
+
+    def short_weld(rows_welded: int, end: int) -> np.ndarray:
+        clean = np.repeat(lab_all[:45], 3)
+        welded = np.repeat(np.concatenate([lab_all[:38], lab_all[48:51]]), 3)
+        img = np.zeros((60 + rows_welded, clean.size), np.uint8)
+        img[:60] = clean
+        img[60:, :welded.size] = welded
+        img[60:, end * 3:] = NONE
+        return img
+
+    for rows_welded, end, rejected in ((6, 41, True), (2, 41, False), (6, 40, False)):
+        lab = short_weld(rows_welded, end)
+        un = uw.unwrap(lab)
+        idx = uw.index_regions(lab, un.relative, un.region, un.region_px.size, spec)
+        assert un.region_px.size == 1 and idx.indexed[0] and idx.offset[0] == 0   # the weld fools the index
+        truth = np.concatenate([np.arange(38), np.arange(48, 51)]).repeat(3)[:end * 3]
+        wrong = un.relative[60:, :end * 3] != truth[None]
+        assert wrong.sum() == rows_welded * (end - 38) * 3
+        off = uw.spans_mask(uw.marker_conflicts(lab, un, idx, spec, uw.UnwrapParams(conflict_persist_rows=0)),
+                            lab.shape)
+        assert not off.any()                      # one disagreement a row: kept without the rule
+        bad = uw.spans_mask(uw.marker_conflicts(lab, un, idx, spec), lab.shape)
+        if rejected:
+            assert not bad[:60].any() and bad[60:, :end * 3][wrong].all()
+            assert not bad[60:, :37 * 3].any() and bad[60:, 37 * 3:end * 3].all()
+        else:
+            assert not bad.any()
+    with pytest.raises(GBError, match="conflict_persist_rows"):
+        uw.UnwrapParams(conflict_persist_rows=1)
+
+
 def patch_scene(spec: PatternSpec, shift: int = 0, first: int = 10, n: int = 40, px: int = 3):
     """Stripes ``first..first+n-1`` (``px`` camera px each, 40 rows) and their true columns; a patch
     (rows 24-28, columns 0-26) is cut off by two dark rows above and a dark gap of 3 px to its right,

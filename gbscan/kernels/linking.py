@@ -145,7 +145,7 @@ def slope_verdicts(c, k, side, lr_near, lr_deep, comps, offsets, lim_near, lim_d
 @njit(cache=True, nogil=True)
 def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_ub,
                      seg_region, reg_offset, reg_indexed, is_marker, min_run_px, min_events, clean_level,
-                     confirm=True):
+                     confirm, region, persist_rows):
     """Pixels of indexed regions whose own row contradicts the region's marker placement.
 
     A region's offset is fixed by all of its markers at once; a segment that crossed a depth edge
@@ -179,7 +179,12 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
     channel sits at its local minimum.  A green/blue run on a marker stripe whose mean
     ``min(gn, bn)`` is below ``clean_level`` is therefore no missed marker but another stripe:
     it counts as ``min_events`` disagreements (``clean_level <= 0``: off; ``gn, bn`` are not read).
-    Cyan on a non-marker stripe still counts one (glints, the hard preset's noise).
+    Cyan on a non-marker stripe still counts one (glints, the hard preset's noise), unless it is
+    a *persistent* marker of another surface: a cyan run between two runs of one colour (green or
+    blue, at least ``min_run_px`` each: a marker's flanks, which a cyan fringe at a green|blue
+    boundary or a mixed pixel at a silhouette, the segment's end, lacks) whose middle column is
+    cyan on the same stripe of the same region (``region`` (H, W) int32) for ``persist_rows``
+    consecutive rows counts as ``min_events`` (``persist_rows`` < 2: off, ``region`` is not read).
     Returns the rejected spans, (n, 3) int32 rows ``(v, u_first, u_last)``.
     """
     H, W = labels.shape
@@ -190,6 +195,7 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
     ev = np.zeros(cap, np.int32)    # per run: +1 agree, -w disagree (w its weight), 0 neutral
     ra = np.zeros(cap, np.int32)    # run start / end pixel
     rb = np.zeros(cap, np.int32)
+    rl = np.zeros(cap, np.uint8)     # per run: its colour when at least min_run_px long, else 0
     for s in range(seg_row.shape[0]):
         k = seg_region[s]
         if k < 0 or not reg_indexed[k]:
@@ -219,6 +225,7 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
                             if acc < clean_level * (b - a + 1):
                                 e = -min_events
             ev[nr] = e
+            rl[nr] = lab if b - a + 1 >= min_run_px else 0
             if e < 0:
                 any_bad = True
             nr += 1
@@ -226,6 +233,12 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
                 a = j_ub[j]
         if not any_bad:
             continue
+        if persist_rows > 1:
+            for i in range(1, nr - 1):
+                if ev[i] == -1 and rl[i] == CYAN and rl[i - 1] == rl[i + 1] and rl[i - 1] != 0 and \
+                        rl[i - 1] != CYAN and _cyan_rows(labels, relative, region, v, (ra[i] + rb[i]) // 2,
+                                                         relative[v, ra[i]], k, persist_rows) >= persist_rows:
+                    ev[i] = -min_events
         for i in range(nr):
             if ev[i] >= 0:
                 continue
@@ -250,6 +263,25 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
             spans[n_sp, 2] = rb[hi]
             n_sp += 1
     return spans[:n_sp].copy()
+
+
+@njit(cache=True, nogil=True)
+def _cyan_rows(labels, relative, region, v, u, rr, k, most):
+    # marker_conflicts: the consecutive rows through (v, u), up to ``most``, where column u is cyan
+    # on relative stripe rr of region k
+    H = labels.shape[0]
+    if labels[v, u] != CYAN:
+        return 0
+    n = 1
+    q = v - 1
+    while q >= 0 and n < most and labels[q, u] == CYAN and relative[q, u] == rr and region[q, u] == k:
+        n += 1
+        q -= 1
+    q = v + 1
+    while q < H and n < most and labels[q, u] == CYAN and relative[q, u] == rr and region[q, u] == k:
+        n += 1
+        q += 1
+    return n
 
 
 @njit(cache=True, nogil=True)
