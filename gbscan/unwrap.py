@@ -138,7 +138,7 @@ class UnwrapParams:
         region's offset is a disagreement (:func:`marker_conflicts`).
     conflict_events : disagreements a stretch of a row between agreeing markers must hold to be
         made unindexed.
-    conflict_clean_level : a green/blue run on a marker stripe whose mean ``min(gn, bn)`` (the
+    conflict_clean_level : a green/blue run on a marker stripe whose median ``min(gn, bn)`` (the
         classifier's locally normalised channels) is below this is a decisive disagreement alone
         (0 disables; needs the channels, see :func:`marker_conflicts`).  A marker lights both
         channels: the 202 markers missed (classified green/blue) on ``scripts/sweep_decode.py``'s
@@ -147,7 +147,14 @@ class UnwrapParams:
         sweep it takes the wrong non-edge pixels 609 -> 151 (a wall strip welded to the box, wall
         at 800 mm: 246 -> 12; the moving frames' panel strips welded to the wall, frames 4, 5, 7:
         12, 158, 71 -> 0, 0, 17) at coverage 82.03 -> 82.00 % (only those scenes lose pixels);
-        0.15, 0.18 and 0.2 fix the same pixels.
+        0.15, 0.18 and 0.2 fix the same pixels.  Since the twenty-second session the run's
+        *median* ``min(gn, bn)`` (numpy's: the mean of the middle two when even) rather than its
+        mean: a lens with lateral chromatic aberration shifts the blue image against the green
+        one, so a welded run's edge pixel mixes both channels (a 3-px run 0.05 / 0.07 / 0.37: mean
+        0.16, median 0.07).  Through the simulator's lens at 1 px in the corners the sweep's 54
+        wrong pixels off depth edges (a wall strip welded beside the box) go to 0, and 92 -> 0
+        with the aberration applied to the finished frames; the lossless sweep loses 37 right
+        pixels of one moving frame (a weld already masked, whose stretch now reaches them).
     conflict_confirm : an agreeing marker bounds a rejected stretch only when the next event
         beyond it agrees too (a strip of another surface puts one of its markers on a marker
         stripe of the region now and then); False: any agreeing marker bounds it, as before.  On
@@ -1144,7 +1151,7 @@ def marker_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, patter
     stretch between agreeing markers holding ``conflict_events`` such contradictions is rejected
     (see :func:`gbscan.kernels.marker_conflicts`).  The decoder reports these pixels unindexed.
     With ``gn, bn`` (H, W) float32 (the classifier's locally normalised green and blue), a *clean*
-    green/blue run on a marker stripe (mean ``min(gn, bn)`` below ``conflict_clean_level``: the
+    green/blue run on a marker stripe (median ``min(gn, bn)`` below ``conflict_clean_level``: the
     other channel dark, no missed marker) is decisive alone: a strip of another surface welded in
     where only one of its stripes meets a marker of the region.
 

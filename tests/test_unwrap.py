@@ -726,6 +726,25 @@ def test_marker_conflicts_a_clean_disagreement_is_decisive_a_missed_marker_is_no
     assert uw.marker_conflicts(lab, un, idx, spec, off, gn, bn).shape == (0, 3)
 
 
+@pytest.mark.parametrize("edge_px, rejected", [((0.37,), True), ((0.37, 0.4), False)])
+def test_marker_conflicts_a_clean_run_stays_clean_with_a_mixed_edge_pixel(edge_px, rejected):
+    """The clean test takes the run's median ``min(gn, bn)``: a lens with lateral chromatic
+    aberration mixes both channels into a welded run's edge pixel (0.05 / 0.05 / 0.37 on the
+    sweep through a 1-px lens: mean 0.16, over ``conflict_clean_level`` 0.15, median 0.05).  Two
+    mixed pixels of three are no clean run."""
+    spec = PatternSpec()
+    lab = stripe_image(spec, 0, 45, rows=40)
+    m = slice(16 * 3, 17 * 3)
+    lab[20, m] = G
+    gn, bn = _channels(lab)
+    bn[20, m] = 0.05
+    bn[20, 17 * 3 - len(edge_px):17 * 3] = edge_px
+    un = uw.unwrap(lab)
+    idx = uw.index_regions(lab, un.relative, un.region, un.region_px.size, spec)
+    bad = uw.spans_mask(uw.marker_conflicts(lab, un, idx, spec, gn=gn, bn=bn), lab.shape)
+    assert bad[20].any() == rejected and not np.delete(bad, 20, axis=0).any()
+
+
 def test_marker_conflicts_with_channels_equal_the_two_event_rule_without_clean_runs():
     """On the welded image of the two-event test the clean rule finds the same spans (its
     disagreements are cyan-less stripes too, but two of them already reject the stretch)."""

@@ -176,8 +176,9 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
     A projected marker lights both channels, so even a
     marker pixel the classifier calls green or blue (a missed marker: skin, a rim) keeps the
     other channel well up (``min(gn, bn)`` ~0.3-0.5); on a green or blue stripe the other
-    channel sits at its local minimum.  A green/blue run on a marker stripe whose mean
-    ``min(gn, bn)`` is below ``clean_level`` is therefore no missed marker but another stripe:
+    channel sits at its local minimum.  A green/blue run on a marker stripe whose median
+    ``min(gn, bn)`` (robust to an edge pixel where lateral chromatic aberration mixes the
+    channels) is below ``clean_level`` is therefore no missed marker but another stripe:
     it counts as ``min_events`` disagreements (``clean_level <= 0``: off; ``gn, bn`` are not read).
     Cyan on a non-marker stripe still counts one (glints, the hard preset's noise), unless it is
     a *persistent* marker of another surface: a cyan run between two runs of one colour (green or
@@ -196,6 +197,7 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
     ra = np.zeros(cap, np.int32)    # run start / end pixel
     rb = np.zeros(cap, np.int32)
     rl = np.zeros(cap, np.uint8)     # per run: its colour when at least min_run_px long, else 0
+    mb = np.empty(cap, np.float32)   # a run's min(gn, bn), sorted
     for s in range(seg_row.shape[0]):
         k = seg_region[s]
         if k < 0 or not reg_indexed[k]:
@@ -218,12 +220,8 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
                         e = 1 if is_marker[A] else -1
                     elif is_marker[A]:
                         e = -1
-                        if clean_level > 0:
-                            acc = 0.0
-                            for x in range(a, b + 1):
-                                acc += min(gn[v, x], bn[v, x])
-                            if acc < clean_level * (b - a + 1):
-                                e = -min_events
+                        if clean_level > 0 and _run_median_min(gn, bn, v, a, b, mb) < clean_level:
+                            e = -min_events
             ev[nr] = e
             rl[nr] = lab if b - a + 1 >= min_run_px else 0
             if e < 0:
@@ -263,6 +261,25 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
             spans[n_sp, 2] = rb[hi]
             n_sp += 1
     return spans[:n_sp].copy()
+
+
+@njit(cache=True, nogil=True)
+def _run_median_min(gn, bn, v, a, b, buf):
+    # marker_conflicts: the median of min(gn, bn) over pixels a..b of row v (numpy's: the mean of
+    # the middle two when even), sorted by insertion in buf
+    n = 0
+    for x in range(a, b + 1):
+        t = min(gn[v, x], bn[v, x])
+        i = n
+        while i > 0 and buf[i - 1] > t:
+            buf[i] = buf[i - 1]
+            i -= 1
+        buf[i] = t
+        n += 1
+    h = n // 2
+    if n % 2 == 1:
+        return buf[h]
+    return np.float32(0.5) * (buf[h - 1] + buf[h])
 
 
 @njit(cache=True, nogil=True)
