@@ -440,7 +440,8 @@ class DecodeParams:
         the frame (the blue stripe edges against the green ones, :func:`lateral_chromatic_aberration`)
         and, when it is clear (slope ``lateral_ca_t`` standard errors from 0) and reaches
         ``lateral_ca_min_px`` camera px among the boundaries, move every boundary to its green
-        edge (``stats['lateral_ca']``).  The sweep through a simulated lens whose blue image is 0.5
+        edge (``stats['lateral_ca']``), before the unwrapping's spacing and tilt cuts read them
+        (:func:`correct_lateral_ca`).  The sweep through a simulated lens whose blue image is 0.5
         px larger than the green one at the corners (``sim.Conditions.lateral_ca_px``): column RMS
         0.244 projector px uncorrected, 0.107 corrected, 0.094 without aberration; none of the
         sweeps' 189 frames without aberration is corrected (t at most 3.1 where the fit scatters
@@ -1223,27 +1224,28 @@ def lateral_chromatic_aberration(cls: Classified, segs, jx: np.ndarray, frame_w:
     edge: ``jx - delta / 2`` (green|blue), ``jx - delta`` (green|cyan).
 
     ``jx`` (n_junctions,) float32 frame columns, ``frame_w`` the frame's width.  Returns the
-    corrected copy (``jx`` itself when not corrected) and the stats (None when too few green|blue
+    corrected copy (``jx`` itself when not corrected), the stats (None when too few green|blue
     boundaries: ``a_px``, ``k``, ``edge_px`` (|delta| at the frame's farther side), ``t``,
-    ``sigma_px``, ``junctions``, ``corrected``).
+    ``sigma_px``, ``junctions``, ``corrected``) and the fit ``(a, k)`` when corrected, else None
+    (for :func:`correct_lateral_ca` on other segments of the same frame).
     """
     from . import kernels
-    from .kernels._common import BLUE, CYAN, GREEN
+    from .kernels._common import BLUE, GREEN
 
     la, lb = segs.j_la, segs.j_lb
     gb = ((la == GREEN) & (lb == BLUE)) | ((la == BLUE) & (lb == GREEN))
     sel = np.flatnonzero(gb & np.isfinite(jx))
     if sel.size < CA_MIN_JUNCTIONS:
-        return jx, None
+        return jx, None, None
     if sel.size > CA_SAMPLE:
         sel = sel[np.linspace(0, sel.size - 1, CA_SAMPLE).astype(np.int64)]
     x, d = kernels.channel_edge_offsets(cls.gn, cls.bn, segs.row, segs.j_ua, segs.j_ub, la, segs.u0, segs.u1,
                                         segs.j_seg, sel.astype(np.int64), jx, int(ox), CA_MAX_EDGE_PX)
     if x.size < CA_MIN_JUNCTIONS:
-        return jx, None
+        return jx, None, None
     a, k, sig, n_fit, sd_x = kernels.robust_line(x, d, 2)
     if not np.isfinite(sig):
-        return jx, None
+        return jx, None, None
     se_k = sig / (np.sqrt(n_fit) * max(sd_x, 1e-6))
     t = abs(k) / max(se_k, 1e-12)
     reach = max(abs(a + k * float(x.min())), abs(a + k * float(x.max())))
@@ -1251,13 +1253,25 @@ def lateral_chromatic_aberration(cls: Classified, segs, jx: np.ndarray, frame_w:
     st = {"a_px": round(float(a), 4), "k": float(f"{k:.4g}"), "edge_px": round(max(abs(a), abs(a + k * (frame_w - 1))), 3),
           "t": round(float(t), 1), "sigma_px": round(float(sig), 3), "junctions": int(n_fit), "corrected": corrected}
     if not corrected:
-        return jx, st
+        return jx, st, None
+    return correct_lateral_ca(segs, jx, a, k), st, (a, k)
+
+
+def correct_lateral_ca(segs, jx: np.ndarray, a: float, k: float) -> np.ndarray:
+    """The boundaries ``jx`` (n_junctions,) float32 frame columns of ``segs`` moved to the green
+    channel's edge, the blue one lying ``delta = a + k x`` px from it
+    (:func:`lateral_chromatic_aberration`): ``- delta / 2`` for green|blue, ``- delta`` for
+    green|cyan, blue|cyan as they are.  Returns a float32 copy."""
+    from .kernels._common import BLUE, CYAN, GREEN
+
+    la, lb = segs.j_la, segs.j_lb
+    gb = ((la == GREEN) & (lb == BLUE)) | ((la == BLUE) & (lb == GREEN))
     delta = (a + k * jx.astype(np.float64))
     out = jx.astype(np.float64)
     out[gb] -= 0.5 * delta[gb]
     gc = ((la == GREEN) & (lb == CYAN)) | ((la == CYAN) & (lb == GREEN))
     out[gc] -= delta[gc]
-    return out.astype(np.float32), st
+    return out.astype(np.float32)
 
 
 @functools.lru_cache(maxsize=16)
@@ -2191,9 +2205,18 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
 
     def locate(sg):
         # the boundary positions of step 1's segments; a retry unwraps the same labels, so the
-        # same segments (kept for it) and positions
+        # same segments (kept for it) and positions.  Lateral chromatic aberration is measured on
+        # the first segments located and taken out of every set, before the unwrapping's spacing
+        # and tilt cuts read them
         if located.get("segs") is not sg:
-            located["segs"], located["x"] = sg, subpixel_boundaries(cls, sg, ox)
+            x = subpixel_boundaries(cls, sg, ox)
+            if params.lateral_ca:
+                if "ca" not in located:
+                    x, located["ca"], located["ca_fit"] = lateral_chromatic_aberration(cls, sg, x, shape[1],
+                                                                                      params, ox)
+                elif located["ca_fit"] is not None:
+                    x = correct_lateral_ca(sg, x, *located["ca_fit"])
+            located["segs"], located["x"] = sg, x
         return located["x"]
 
     un = uw.unwrap(cls.labels, params.unwrap, locate=locate)
@@ -2221,10 +2244,8 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
     ms["index"] = (t5 - t4) * 1e3
 
     segs = un.segments
-    jx = segs.j_x if segs.j_x is not None else subpixel_boundaries(cls, segs, ox)
-    ca = None
-    if params.lateral_ca:
-        jx, ca = lateral_chromatic_aberration(cls, segs, jx, shape[1], params, ox)
+    jx = segs.j_x if segs.j_x is not None else locate(segs)
+    ca = located.get("ca")
     seg_reg = un.seg_region
     # relative columns for every region (consistent inside it; unknown multiple of 2*stripe_px)
     j_bnd = kernels.junction_index(segs.j_rel, segs.j_seg, un.seg_P)
