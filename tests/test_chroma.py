@@ -274,6 +274,28 @@ def test_lateral_chromatic_aberration_is_taken_out_before_the_unwrapping(monkeyp
     assert np.array_equal(x_on[bc], x_off[bc])             # located on the green channel alone
 
 
+def test_lens_aberration_does_not_weld_a_wall_strip_beside_the_box():
+    """Issue 3, every reported pixel right, through a lens whose blue image is 1 px larger than
+    the green one at the corners: the multi-object scene with its wall at 800 mm (seed 0).  A
+    strip of the wall beside the box lines up with the box's stripes 10 apart; the row check
+    rejects it where the wall's green falls on the box's marker stripe with the blue channel dark
+    -- dark but for the one edge pixel the shifted blue image lights.  The clean test takes the
+    run's median ``min(gn, bn)`` (its mean left 80 wrong pixels here); without the clean rule 178."""
+    from gbscan.unwrap import UnwrapParams
+
+    spec = PatternSpec()
+    r = frame(seed=0, args=(650.0, 800.0), lateral_ca_px=1.0)
+
+    def wrong(sm):
+        truth = r.proj_xy[..., 0]
+        ok = sm.valid & np.isfinite(truth) & ~r.depth_edge
+        return int((ok & (np.abs(sm.column - truth) >= spec.stripe_px / 2)).sum())
+
+    sm = decode(r.image, spec)
+    assert sm.stats["lateral_ca"]["corrected"] and wrong(sm) == 0
+    assert wrong(decode(r.image, spec, DecodeParams(unwrap=UnwrapParams(conflict_clean_level=0.0)))) > 100
+
+
 def test_robust_line_and_channel_edges_kernels():
     from gbscan import kernels
 
