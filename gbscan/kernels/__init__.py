@@ -23,6 +23,7 @@ The kernels live in one module per concept and are all reachable here as ``kerne
 ``guards``         rim guard rows, stripe SNR, orphans, brightness-step guard, bridge cuts, tilt-step cuts
 ``resample``       stripe width from runs, linear-light shrinking, expanding a coarse decode
 ``pointmap``       cleaning an organised point map (``gbscan.clean``)
+``colour``         the frame's colour resolution: chroma window moments (``gbscan.chroma``)
 =================  =================================================================================
 
 Row loops that vectorise: one loop per array written, indexed from 0, no calls, no early exits.
@@ -49,6 +50,7 @@ from __future__ import annotations
 from ._common import BLUE, CYAN, GREEN, NONE  # noqa: F401
 from .linking import *  # noqa: F401,F403
 from .classify import *  # noqa: F401,F403
+from .colour import *  # noqa: F401,F403
 from .classify import _box4_8to15, _minmax4_from_quads, _quad_minmax2, _raw_hi_row  # noqa: F401  (tests)
 from .guards import *  # noqa: F401,F403
 from .guards import _brightness, _tilt_step  # noqa: F401  (tests)
