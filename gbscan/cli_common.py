@@ -100,11 +100,12 @@ def rig_label(args) -> str:
     return out + ("" if cam == DEFAULT_CAMERA_PX else f", camera {cam[0]}x{cam[1]}")
 
 
-def add_jpeg_arguments(p) -> None:
-    """``--jpeg QUALITY``, ``--jpeg-sampling``, ``--yuv`` and ``--lateral-ca-px`` of the simulators and
-    the study scripts: frames stored as JPEG (``gbscan.sim.Conditions.jpeg_quality`` /
-    ``jpeg_sampling``) or delivered as YUV (``Conditions.yuv``), a lens with lateral chromatic
-    aberration (``Conditions.lateral_ca_px``); default lossless RGB through a perfect lens."""
+def add_capture_arguments(p) -> None:
+    """``--jpeg QUALITY``, ``--jpeg-sampling``, ``--yuv``, ``--lateral-ca-px`` and ``--gloss`` of the
+    simulators and the study scripts: frames stored as JPEG (``gbscan.sim.Conditions.jpeg_quality``
+    / ``jpeg_sampling``) or delivered as YUV (``Conditions.yuv``), a lens with lateral chromatic
+    aberration (``Conditions.lateral_ca_px``), glossy surfaces (``Conditions.specular`` /
+    ``shininess``); default lossless RGB through a perfect lens, matte surfaces."""
     from .sim.presets import JPEG_SAMPLINGS, YUV_FORMATS
 
     p.add_argument("--jpeg", type=int, default=0, metavar="QUALITY",
@@ -117,19 +118,40 @@ def add_jpeg_arguments(p) -> None:
     p.add_argument("--lateral-ca-px", type=float, default=0.0, metavar="PX",
                    help="the camera lens's lateral chromatic aberration: the blue image lies PX further out than "
                         "the green one at the frame's corners, the red one as far in (default 0)")
+    p.add_argument("--gloss", type=_gloss, default=(0.0, 20.0), metavar="KS[,SHININESS]",
+                   help="glossy surfaces: the light's own colour reflected with weight KS (a white matte "
+                        "surface = 1) times (n.h)**SHININESS, Blinn-Phong (default 0: matte; skin ~0.3-1 "
+                        "with SHININESS 20-40, the default 20)")
 
 
-def jpeg_fields(args) -> dict:
-    """The :class:`gbscan.sim.Conditions` fields of :func:`add_jpeg_arguments`' options."""
+def _gloss(text: str) -> tuple[float, float]:
+    import argparse
+
+    try:
+        v = [float(t) for t in text.split(",")]
+        if len(v) in (1, 2) and v[0] >= 0 and (len(v) == 1 or v[1] > 0):
+            return (v[0], v[1] if len(v) == 2 else 20.0)
+    except ValueError:
+        pass
+    raise argparse.ArgumentTypeError(f"expected KS or KS,SHININESS (KS >= 0, SHININESS > 0), got {text!r}")
+
+
+def capture_fields(args) -> dict:
+    """The :class:`gbscan.sim.Conditions` fields of :func:`add_capture_arguments`' options."""
+    ks, shininess = getattr(args, "gloss", (0.0, 20.0))
     return {"jpeg_quality": int(args.jpeg), "jpeg_sampling": args.jpeg_sampling, "yuv": getattr(args, "yuv", ""),
-            "lateral_ca_px": float(getattr(args, "lateral_ca_px", 0.0))}
+            "lateral_ca_px": float(getattr(args, "lateral_ca_px", 0.0)), "specular": float(ks),
+            "shininess": float(shininess)}
 
 
-def jpeg_label(args) -> str:
-    """", JPEG q85 4:2:0" (", YUYV") for the options of :func:`add_jpeg_arguments`, "" for RGB frames."""
+def capture_label(args) -> str:
+    """", JPEG q85 4:2:0" (", YUYV", ", gloss 1 (shininess 30)") for the options of
+    :func:`add_capture_arguments`, "" for lossless RGB frames of matte surfaces."""
     yuv = f", {args.yuv.upper()}" if getattr(args, "yuv", "") else ""
     ca = f", lateral CA {args.lateral_ca_px:g} px" if getattr(args, "lateral_ca_px", 0.0) else ""
-    return (f", JPEG q{args.jpeg} {args.jpeg_sampling}" if args.jpeg else "") + yuv + ca
+    ks, shininess = getattr(args, "gloss", (0.0, 20.0))
+    gloss = f", gloss {ks:g} (shininess {shininess:g})" if ks else ""
+    return (f", JPEG q{args.jpeg} {args.jpeg_sampling}" if args.jpeg else "") + yuv + ca + gloss
 
 
 #: the colour of ``--ambient`` room light in the camera's red, green and blue (warm: tungsten or

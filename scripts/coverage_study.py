@@ -327,13 +327,13 @@ def main(argv=None) -> int:
                          "what --max-sigma-mm thresholds keep")
     ap.add_argument("--edge-profile", action="store_true",
                     help="also print the decoded columns' signed error by distance to the reported area's edges")
-    from gbscan.cli_common import (add_rig_arguments, add_ambient_argument, add_bayer_argument, add_jpeg_arguments,
-                                   ambient_fields, ambient_label, jpeg_fields, jpeg_label, rig_from_args)
+    from gbscan.cli_common import (add_rig_arguments, add_ambient_argument, add_bayer_argument, add_capture_arguments,
+                                   ambient_fields, ambient_label, capture_fields, capture_label, rig_from_args)
 
     add_rig_arguments(ap)
     add_ambient_argument(ap)
     add_bayer_argument(ap)
-    add_jpeg_arguments(ap)
+    add_capture_arguments(ap)
     args = ap.parse_args(argv)
     from gbscan import sim
     from gbscan.errors import GBError
@@ -370,12 +370,12 @@ def main(argv=None) -> int:
     yaw = "" if args.yaw_deg is None else f", yaw {args.yaw_deg:g} deg"
     try:
         rig_from_args(args)
-        conditions = {**jpeg_fields(args), **ambient_fields(args)}
+        conditions = {**capture_fields(args), **ambient_fields(args)}
     except GBError as e:
         ap.error(str(e))
     print(f"# coverage study, paper rig (baseline {args.baseline_mm:g} mm, camera {args.camera[0]}x{args.camera[1]}), "
           f"preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}"
-          f"{jpeg_label(args)}{ambient_label(args)}{yaw}, "
+          f"{capture_label(args)}{ambient_label(args)}{yaw}, "
           f"{dec}, default cleaning")
     for name in names:
         for seed in seeds:

@@ -50,9 +50,9 @@ def main(argv=None) -> int:
     ap.add_argument("--decode-param", action="append", default=[], metavar="NAME=VALUE",
                     help="a DecodeParams field off its default for every decode (repeatable; unwrap.NAME=VALUE for "
                          "the unwrapping's), e.g. crop=false")
-    from gbscan.cli_common import add_jpeg_arguments, jpeg_fields, jpeg_label
+    from gbscan.cli_common import add_capture_arguments, capture_fields, capture_label
 
-    add_jpeg_arguments(ap)   # --jpeg, --jpeg-sampling, --yuv, --lateral-ca-px: how the camera delivers frames
+    add_capture_arguments(ap)   # --jpeg, --jpeg-sampling, --yuv, --lateral-ca-px: how the camera delivers frames
     args = ap.parse_args(argv)
     try:
         scales = [float(x) for x in args.scales.split(",") if x.strip()]
@@ -90,11 +90,11 @@ def main(argv=None) -> int:
     except GBError as e:
         ap.error(str(e))
     try:
-        cond = dataclasses.replace(sim.preset(args.preset), supersample=args.supersample, **jpeg_fields(args))
+        cond = dataclasses.replace(sim.preset(args.preset), supersample=args.supersample, **capture_fields(args))
     except GBError as e:
         ap.error(str(e))
     print(f"# resample study, paper rig, camera 640x480 x scale, preset {args.preset}, seed {args.seed}, "
-          f"supersample {args.supersample}, 8 px stripes at 650 mm{jpeg_label(args)}")
+          f"supersample {args.supersample}, 8 px stripes at 650 mm{capture_label(args)}")
     print(f"{'scene':13s} {'camera':>9s} {'px/stripe':>9s} {'est.':>5s} {'resample':>8s} {'used':>5s} "
           f"{'reported %':>10s} {'wrong':>6s} {'wrong_edge':>10s} {'col RMS':>7s} {'ms':>7s}")
     for scale in scales:

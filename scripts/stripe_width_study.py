@@ -29,10 +29,10 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="typical")
     ap.add_argument("--scale-windows", action="store_true",
                     help="decode each width with local windows of 15 * stripe_px / 8 px (default: 15 px for all)")
-    from gbscan.cli_common import add_bayer_argument, add_jpeg_arguments, jpeg_fields, jpeg_label
+    from gbscan.cli_common import add_bayer_argument, add_capture_arguments, capture_fields, capture_label
 
     add_bayer_argument(ap)
-    add_jpeg_arguments(ap)
+    add_capture_arguments(ap)
     args = ap.parse_args(argv)
     import dataclasses
 
@@ -42,9 +42,9 @@ def main(argv=None) -> int:
 
     rig = sim.paper_rig()
     rays = rig.camera.pixel_rays()
-    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer, **jpeg_fields(args))
+    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer, **capture_fields(args))
     bayer = f", Bayer {args.bayer}" if args.bayer else ""
-    print(f"# stripe width study, preset {args.preset}{bayer}{jpeg_label(args)}, "
+    print(f"# stripe width study, preset {args.preset}{bayer}{capture_label(args)}, "
           f"paper rig at 650 mm, local windows {'15 * stripe_px / 8' if args.scale_windows else '15'} px")
     print(f"{'scene':8s} {'stripe_px':>9s} {'cam px/stripe':>13s} {'coverage %':>10s} {'index ok %':>10s} "
           f"{'col RMS px':>10s} {'depth RMS mm':>12s} {'boundaries':>10s}")

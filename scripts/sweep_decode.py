@@ -21,6 +21,7 @@ pixel with the simulator's truth (``r.proj_xy``):
     python scripts/sweep_decode.py --cache DIR --yuv yuyv --decode subsampled_chroma=decode
                                    # a YUYV camera, decoded anyway (by default such frames are withheld)
     python scripts/sweep_decode.py --cache DIR --lateral-ca-px 0.5   # a lens with lateral chromatic aberration
+    python scripts/sweep_decode.py --cache DIR --gloss 1,30          # glossy surfaces (Blinn-Phong highlights)
     python scripts/sweep_decode.py --cache DIR --set room-light   # warm and cool room light (44 frames)
     python scripts/sweep_decode.py --cache DIR --set clean        # the clean preset (16 frames)
     python scripts/sweep_decode.py --cache DIR --set baselines    # other baselines (33 frames)
@@ -205,6 +206,8 @@ def load_or_render(name, preset, seed, ss, factory, cache: Path | None, jpeg: di
         tag = f"_jpeg{jpeg['jpeg_quality']}_{jpeg['jpeg_sampling'].replace(':', '')}"
     if jpeg and jpeg.get("lateral_ca_px"):
         tag += f"_ca{jpeg['lateral_ca_px']:g}"
+    if jpeg and jpeg.get("specular"):
+        tag += f"_gloss{jpeg['specular']:g}_{jpeg.get('shininess', 20.0):g}"
     f = cache / f"{name}_{preset.replace('+', '_').replace('@', '_').replace('/', '_')}_ss{ss}{tag}.npz" \
         if cache is not None else None
     if f is not None and f.exists():
@@ -330,11 +333,11 @@ def main(argv=None) -> int:
     ap.add_argument("--blur-grid", metavar="S1,S2,...",
                     help="run the whole sweep once per fixed blur sigma (px) and print one total line each "
                          "(the automatic blur picks 1-3 px by the frame's SNR: the index must hold at all)")
-    from gbscan.cli_common import add_jpeg_arguments, jpeg_fields
+    from gbscan.cli_common import add_capture_arguments, capture_fields
 
-    add_jpeg_arguments(ap)
+    add_capture_arguments(ap)
     args = ap.parse_args(argv)
-    jpeg = jpeg_fields(args)
+    jpeg = capture_fields(args)
     sigmas = []
     if args.blur_grid:
         try:

@@ -19,7 +19,7 @@ SCENES = ["plane", "sphere", "head", "step", "multi", "board", "face"]
 
 
 def add_arguments(p):
-    from gbscan.cli_common import add_rig_arguments, add_ambient_argument, add_bayer_argument, add_jpeg_arguments
+    from gbscan.cli_common import add_rig_arguments, add_ambient_argument, add_bayer_argument, add_capture_arguments
 
     p.add_argument("scene", choices=SCENES, metavar="SCENE", help="one of " + ", ".join(SCENES))
     p.add_argument("-o", "--output", required=True, help="output PNG (camera image, RGB)")
@@ -31,7 +31,7 @@ def add_arguments(p):
     p.add_argument("--raw", action="store_true",
                    help="with --bayer: write the raw mosaic (one channel), as a machine-vision camera delivers "
                         "it (scan it with 'gbscan scan --bayer PATTERN')")
-    add_jpeg_arguments(p)
+    add_capture_arguments(p)
     p.add_argument("--distance-mm", type=float, default=650.0, help="scene distance in mm (default 650)")
     add_rig_arguments(p)
     p.add_argument("--truth", help="also write the ground truth to this .npz")
@@ -78,7 +78,7 @@ def run(args) -> int:
 
     from gbscan import sim
     from gbscan.errors import GBError
-    from gbscan.cli_common import ambient_fields, ambient_label, rig_label, jpeg_fields, jpeg_label, rig_from_args
+    from gbscan.cli_common import ambient_fields, ambient_label, rig_label, capture_fields, capture_label, rig_from_args
     from gbscan.io import read_image_rgb, write_png
     from gbscan.pattern import PatternSpec, render_pattern
 
@@ -110,7 +110,7 @@ def run(args) -> int:
         frame = render_pattern(PatternSpec(pw, ph, args.stripe_px, not args.no_markers))
     t0 = time.time()
     scene = make_scene(args.scene, args.distance_mm)
-    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer, bayer_raw=args.raw, **jpeg_fields(args),
+    cond = dataclasses.replace(sim.preset(args.preset), bayer=args.bayer, bayer_raw=args.raw, **capture_fields(args),
                                **ambient_fields(args))
     if moving:
         poses = sim.scenes.exposure_poses(scene, move or (0.0, 0.0, 0.0), args.turn_deg, args.exposure_steps)
@@ -118,7 +118,7 @@ def run(args) -> int:
     else:
         r = sim.render(rig, scene, frame, cond, seed=args.seed)
     out = write_png(args.output, r.image)
-    camera = (f", Bayer {args.bayer}{' raw mosaic' if args.raw else ''}" if args.bayer else "") + jpeg_label(args) \
+    camera = (f", Bayer {args.bayer}{' raw mosaic' if args.raw else ''}" if args.bayer else "") + capture_label(args) \
         + ambient_label(args)
     if moving:
         camera += (f", moving {','.join(f'{x:g}' for x in move or (0, 0, 0))} mm"

@@ -66,6 +66,9 @@ class Conditions:
     exposure: float = 0.8                # linear camera value of albedo 1, white, head-on, ref distance
     albedo_gain_rgb: tuple = (1.0, 1.0, 1.0)  # scales every surface's albedo (dark / tinted scenes)
     vignetting: float = 0.1              # relative fall-off at the image corner (quadratic in radius)
+    specular: float = 0.0                # Blinn-Phong gloss: the light's colour reflected with this
+                                         # weight (albedo 1 diffuse = 1) times (n . h)**shininess
+    shininess: float = 20.0              # its exponent (skin ~10-40, glossy paint ~100)
     lateral_ca_px: float = 0.0           # lateral chromatic aberration: blue lies this far out from
                                          # green at the farthest corner (red as far in), px
     cam_sigma_px: float = 0.5            # camera blur (optics + demosaicing), Gaussian sigma px
@@ -96,7 +99,7 @@ class Conditions:
             if not float(getattr(self, name)) > 0:
                 raise GBError(f"condition {name} must be positive, got {getattr(self, name)}")
         for name in ("proj_sigma_px", "proj_defocus_px_per_100mm", "cam_sigma_px", "motion_px",
-                     "full_well_e", "read_noise_dn", "vignetting"):
+                     "full_well_e", "read_noise_dn", "vignetting", "specular", "shininess"):
             if float(getattr(self, name)) < 0:
                 raise GBError(f"condition {name} must be >= 0, got {getattr(self, name)}")
         if self.bayer not in ("",) + BAYER_PATTERNS:

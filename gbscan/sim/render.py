@@ -263,6 +263,21 @@ def _light_geometry(rig: Rig, scene: Scene, light: ProjectorLight, cond: Conditi
     return ill, xy, factor, sigma, ill & inframe
 
 
+def _gloss(rig: Rig, cond: Conditions, P: np.ndarray, n: np.ndarray, S: int) -> np.ndarray:
+    """(N,) float32 Blinn-Phong weight of the light's own colour at lit points P (N, 3) mm with
+    normals n (facing the camera): ``exposure / S * specular * (n . h)**shininess * (ref / d)**2``,
+    ``h`` the unit half vector between the directions to the projector and to the camera, ``d``
+    the distance to the projector (the same fall-off as the diffuse irradiance)."""
+    L = rig.t_cam_proj - P
+    d = np.sqrt(np.einsum("ij,ij->i", L, L))
+    V = -P / np.linalg.norm(P, axis=1, keepdims=True)
+    hv = L / d[:, None] + V
+    hv /= np.linalg.norm(hv, axis=1, keepdims=True)
+    nh = np.clip(np.einsum("ij,ij->i", n, hv), 0.0, 1.0)
+    g = cond.exposure / S * cond.specular * nh ** cond.shininess * (cond.ref_distance_mm / d) ** 2
+    return g.astype(np.float32)
+
+
 @dataclass
 class Trace:
     """Everything about one view of a scene that does not depend on the projector frame.
@@ -339,10 +354,13 @@ def trace(rig: Rig, scene: Scene, cond: Conditions | str | None = None) -> Trace
         if np.any(amb > 0):
             for c in range(3):
                 ambient[:, c] += np.bincount(pix, weights=alb[:, c] * amb[c], minlength=H * W).astype(np.float32)
-        ill, xy, factor, sigma, _ = _light_geometry(rig, scene, geo_light, cond, d[h] * hit.t[h, None],
-                                                    hit.normal[h], hit.object_id[h])
+        P = d[h] * hit.t[h, None]
+        ill, xy, factor, sigma, _ = _light_geometry(rig, scene, geo_light, cond, P, hit.normal[h], hit.object_id[h])
+        weight = alb[ill] * factor[ill, None].astype(np.float32)
+        if cond.specular > 0:
+            weight += _gloss(rig, cond, P[ill], hit.normal[h][ill], S)[:, None]
         parts.append((pix[ill].astype(np.int32), xy[ill].astype(np.float32), sigma[ill].astype(np.float32),
-                      alb[ill] * factor[ill, None].astype(np.float32)))
+                      weight))
     cat = (lambda i, shape, dt: np.concatenate([p[i] for p in parts]) if parts else np.zeros(shape, dt))
     return Trace(
         t=t_c.reshape(H, W), point=point.reshape(H, W, 3).astype(np.float32),
