@@ -106,7 +106,7 @@ def add_capture_arguments(p) -> None:
     / ``jpeg_sampling``) or delivered as YUV (``Conditions.yuv``), a lens with lateral chromatic
     aberration (``Conditions.lateral_ca_px``), glossy surfaces (``Conditions.specular`` /
     ``shininess``); default lossless RGB through a perfect lens, matte surfaces."""
-    from .sim.presets import JPEG_SAMPLINGS, YUV_FORMATS
+    from .sim.presets import DEFAULT_SHININESS, JPEG_SAMPLINGS, YUV_FORMATS
 
     p.add_argument("--jpeg", type=int, default=0, metavar="QUALITY",
                    help="the camera stores JPEG of this quality (1-100; default 0: lossless frames)")
@@ -118,19 +118,22 @@ def add_capture_arguments(p) -> None:
     p.add_argument("--lateral-ca-px", type=float, default=0.0, metavar="PX",
                    help="the camera lens's lateral chromatic aberration: the blue image lies PX further out than "
                         "the green one at the frame's corners, the red one as far in (default 0)")
-    p.add_argument("--gloss", type=_gloss, default=(0.0, 20.0), metavar="KS[,SHININESS]",
+    p.add_argument("--gloss", type=_gloss, default=(0.0, DEFAULT_SHININESS), metavar="KS[,SHININESS]",
                    help="glossy surfaces: the light's own colour reflected with weight KS (a white matte "
                         "surface = 1) times (n.h)**SHININESS, Blinn-Phong (default 0: matte; skin ~0.3-1 "
-                        "with SHININESS 20-40, the default 20)")
+                        f"with SHININESS 20-40, the default {DEFAULT_SHININESS:g})")
 
 
 def _gloss(text: str) -> tuple[float, float]:
+    # --gloss KS[,SHININESS] -> (KS, SHININESS)
     import argparse
+
+    from .sim.presets import DEFAULT_SHININESS
 
     try:
         v = [float(t) for t in text.split(",")]
         if len(v) in (1, 2) and v[0] >= 0 and (len(v) == 1 or v[1] > 0):
-            return (v[0], v[1] if len(v) == 2 else 20.0)
+            return (v[0], v[1] if len(v) == 2 else DEFAULT_SHININESS)
     except ValueError:
         pass
     raise argparse.ArgumentTypeError(f"expected KS or KS,SHININESS (KS >= 0, SHININESS > 0), got {text!r}")
@@ -138,10 +141,11 @@ def _gloss(text: str) -> tuple[float, float]:
 
 def capture_fields(args) -> dict:
     """The :class:`gbscan.sim.Conditions` fields of :func:`add_capture_arguments`' options."""
-    ks, shininess = getattr(args, "gloss", (0.0, 20.0))
-    return {"jpeg_quality": int(args.jpeg), "jpeg_sampling": args.jpeg_sampling, "yuv": getattr(args, "yuv", ""),
-            "lateral_ca_px": float(getattr(args, "lateral_ca_px", 0.0)), "specular": float(ks),
-            "shininess": float(shininess)}
+    out = {"jpeg_quality": int(args.jpeg), "jpeg_sampling": args.jpeg_sampling, "yuv": getattr(args, "yuv", ""),
+           "lateral_ca_px": float(getattr(args, "lateral_ca_px", 0.0))}
+    if hasattr(args, "gloss"):
+        out["specular"], out["shininess"] = (float(v) for v in args.gloss)
+    return out
 
 
 def capture_label(args) -> str:
@@ -149,7 +153,7 @@ def capture_label(args) -> str:
     :func:`add_capture_arguments`, "" for lossless RGB frames of matte surfaces."""
     yuv = f", {args.yuv.upper()}" if getattr(args, "yuv", "") else ""
     ca = f", lateral CA {args.lateral_ca_px:g} px" if getattr(args, "lateral_ca_px", 0.0) else ""
-    ks, shininess = getattr(args, "gloss", (0.0, 20.0))
+    ks, shininess = getattr(args, "gloss", (0.0, 0.0))
     gloss = f", gloss {ks:g} (shininess {shininess:g})" if ks else ""
     return (f", JPEG q{args.jpeg} {args.jpeg_sampling}" if args.jpeg else "") + yuv + ca + gloss
 

@@ -17,8 +17,8 @@ def chroma_window_moments(img, rows, level, L):
     windows starting on even / odd columns, ``count`` (2,) int64 the windows per parity and channel.
     Each window's products are not summed one by one: along a row the products of pixels ``d``
     apart are summed with a stride of 2 (prefix sums), and every maximal striped run adds the
-    windows inside it in O(L^2) (about 0.1 ms for 16 rows of 640 px, against ~1 ms gathering the
-    windows in numpy).
+    windows inside it in O(L^2) (0.34 ms for 16 rows of 640 px; gathering the windows in numpy and
+    multiplying them took ~1 ms with the calls around).
     """
     W = img.shape[1]
     sums = np.zeros((2, L, L))

@@ -44,6 +44,8 @@ BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 JPEG_SAMPLINGS = ("4:4:4", "4:2:2", "4:2:0")
 #: camera YUV formats ``Conditions.yuv`` takes (OpenCV's conversions to and from RGB)
 YUV_FORMATS = ("yuyv", "i420")
+#: ``Conditions.shininess`` unless given (``--gloss KS`` without a shininess)
+DEFAULT_SHININESS = 20.0
 
 
 def _m(rows):
@@ -68,7 +70,7 @@ class Conditions:
     vignetting: float = 0.1              # relative fall-off at the image corner (quadratic in radius)
     specular: float = 0.0                # Blinn-Phong gloss: the light's colour reflected with this
                                          # weight (albedo 1 diffuse = 1) times (n . h)**shininess
-    shininess: float = 20.0              # its exponent (skin ~10-40, glossy paint ~100)
+    shininess: float = DEFAULT_SHININESS  # its exponent (skin ~10-40, glossy paint ~100)
     lateral_ca_px: float = 0.0           # lateral chromatic aberration: blue lies this far out from
                                          # green at the farthest corner (red as far in), px
     cam_sigma_px: float = 0.5            # camera blur (optics + demosaicing), Gaussian sigma px
