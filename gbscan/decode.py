@@ -1204,8 +1204,17 @@ CA_MAX_SIGMA_PX = 1.0
 CA_MIN_JUNCTIONS = 2000
 
 
+def _colour_pair_junctions(segs) -> tuple[np.ndarray, np.ndarray]:
+    # (n_junctions,) bool: the green|blue and the green|cyan boundaries of segs (either order)
+    from .kernels._common import BLUE, CYAN, GREEN
+
+    la, lb = segs.j_la, segs.j_lb
+    return (((la == GREEN) & (lb == BLUE)) | ((la == BLUE) & (lb == GREEN)),
+            ((la == GREEN) & (lb == CYAN)) | ((la == CYAN) & (lb == GREEN)))
+
+
 def lateral_chromatic_aberration(cls: Classified, segs, jx: np.ndarray, frame_w: int, params: "DecodeParams",
-                                 ox: int = 0) -> tuple[np.ndarray, dict | None]:
+                                 ox: int = 0) -> tuple[np.ndarray, dict | None, tuple[float, float] | None]:
     """The blue channel's stripe edges against the green one's across the frame, and the boundaries
     corrected to the green channel when the offset is clear (``DecodeParams.lateral_ca``).
 
@@ -1230,17 +1239,15 @@ def lateral_chromatic_aberration(cls: Classified, segs, jx: np.ndarray, frame_w:
     (for :func:`correct_lateral_ca` on other segments of the same frame).
     """
     from . import kernels
-    from .kernels._common import BLUE, GREEN
 
-    la, lb = segs.j_la, segs.j_lb
-    gb = ((la == GREEN) & (lb == BLUE)) | ((la == BLUE) & (lb == GREEN))
+    gb, _ = _colour_pair_junctions(segs)
     sel = np.flatnonzero(gb & np.isfinite(jx))
     if sel.size < CA_MIN_JUNCTIONS:
         return jx, None, None
     if sel.size > CA_SAMPLE:
         sel = sel[np.linspace(0, sel.size - 1, CA_SAMPLE).astype(np.int64)]
-    x, d = kernels.channel_edge_offsets(cls.gn, cls.bn, segs.row, segs.j_ua, segs.j_ub, la, segs.u0, segs.u1,
-                                        segs.j_seg, sel.astype(np.int64), jx, int(ox), CA_MAX_EDGE_PX)
+    x, d = kernels.channel_edge_offsets(cls.gn, cls.bn, segs.row, segs.j_ua, segs.j_ub, segs.j_la, segs.u0,
+                                        segs.u1, segs.j_seg, sel.astype(np.int64), jx, int(ox), CA_MAX_EDGE_PX)
     if x.size < CA_MIN_JUNCTIONS:
         return jx, None, None
     a, k, sig, n_fit, sd_x = kernels.robust_line(x, d, 2)
@@ -1262,14 +1269,10 @@ def correct_lateral_ca(segs, jx: np.ndarray, a: float, k: float) -> np.ndarray:
     channel's edge, the blue one lying ``delta = a + k x`` px from it
     (:func:`lateral_chromatic_aberration`): ``- delta / 2`` for green|blue, ``- delta`` for
     green|cyan, blue|cyan as they are.  Returns a float32 copy."""
-    from .kernels._common import BLUE, CYAN, GREEN
-
-    la, lb = segs.j_la, segs.j_lb
-    gb = ((la == GREEN) & (lb == BLUE)) | ((la == BLUE) & (lb == GREEN))
+    gb, gc = _colour_pair_junctions(segs)
     delta = (a + k * jx.astype(np.float64))
     out = jx.astype(np.float64)
     out[gb] -= 0.5 * delta[gb]
-    gc = ((la == GREEN) & (lb == CYAN)) | ((la == CYAN) & (lb == GREEN))
     out[gc] -= delta[gc]
     return out.astype(np.float32)
 

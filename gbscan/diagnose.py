@@ -73,9 +73,9 @@ UNINDEXED_WARN = 0.25
 #: lateral chromatic aberration (blue against green edges at the frame's sides, camera px) above this:
 #: corrected, but a warning.  The sweep's 48 scenes with the blue image magnified against the green
 #: one (applied to the finished frames; 0.32 / 0.8 px at the sides): column RMS 0.20 / 0.49
-#: projector px uncorrected, 0.10 / 0.14 corrected (0.094 without aberration), and 7 / 94 pixels on
-#: wrong stripes either way (welds at silhouettes, where the shifted blue image mixes two surfaces'
-#: colours)
+#: projector px uncorrected, 0.10 / 0.14 corrected (0.094 without aberration); 7 / 94 pixels on
+#: wrong stripes at silhouettes (welds, where the shifted blue image mixes two surfaces' colours)
+#: until the row check's persistent marker and median clean test (twenty-second session): 0 / 0
 LATERAL_CA_WARN_PX = 0.5
 #: below this many labelled pixels (and this share of the image) nothing is measured but "no stripes"
 MIN_LABELLED_PX = 200

@@ -265,8 +265,8 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
 
 @njit(cache=True, nogil=True)
 def _run_median_min(gn, bn, v, a, b, buf):
-    # marker_conflicts: the median of min(gn, bn) over pixels a..b of row v (numpy's: the mean of
-    # the middle two when even), sorted by insertion in buf
+    # marker_conflicts: the median of min(gn, bn) over pixels a..b of row v (_median_sorted of them
+    # sorted by insertion in buf)
     n = 0
     for x in range(a, b + 1):
         t = min(gn[v, x], bn[v, x])
@@ -276,10 +276,7 @@ def _run_median_min(gn, bn, v, a, b, buf):
             i -= 1
         buf[i] = t
         n += 1
-    h = n // 2
-    if n % 2 == 1:
-        return buf[h]
-    return np.float32(0.5) * (buf[h - 1] + buf[h])
+    return _median_sorted(buf, n)
 
 
 @njit(cache=True, nogil=True)
