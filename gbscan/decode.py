@@ -96,6 +96,28 @@ class DecodeParams:
     threshold_window_px : window of the local mean of d (should span >= 2 stripe periods).
     norm_window_px : horizontal window of the local min/max used for contrast, cyan and the
         sub-pixel signals (should span two stripe periods).
+    envelope_follow_px : odd narrow window (px, about one stripe period: 9 at the paper rig; 0, or
+        not narrower than ``norm_window_px``: off, the default) over which the local min/max
+        envelope follows the pattern's brightness (:func:`gbscan.kernels.follow_envelope_row`):
+        where both channels' maxima over it stay below the ``norm_window_px`` ones -- a glossy
+        highlight, a brighter surface or the lit side of a shading gradient within the wide
+        window's reach (~14 px) -- both channels' ranges shrink by one common factor, so the
+        stripes beside it are no longer normalised dark.  A highlight multiplies the pattern (it
+        reflects the projector's own colour), so one factor keeps the colour balance; a stripe
+        wider than the window keeps its own colour's maximum, so the factor stays near 1 there.
+        Measured 0 -> 9 (``scripts/sweep_decode.py``, twenty-third session): the 48 scenes 83.96 ->
+        84.48 % reported (the real face's four frames +2.6 / +11.1 / +4.4 / +6.5 points, heads
+        +2-5, the hard preset -1..-5), 0 wrong pixels off depth edges both ways, column RMS 0.094
+        both; glossy surfaces (``--gloss 1,30``) 78.40 -> 78.35 % (real face +11..+15, heads +3..+6;
+        two glossy multi-object frames -9..-10: a box's two faces made one region whose markers then
+        disagree, dropped), 0 wrong; room light 91.99 -> 92.16 %, clean 90.10 -> 90.76 %, 0 wrong
+        both.  **Not the default** because it revives marginal pixels of the multi-object scene's
+        dim box, whose contact with the wall the unwrapping does not always cut: at 150-160 mm
+        baselines (``--set baselines``) a strip of its top joins the wall's region 8 stripes off
+        (1140 pixels on a wrong stripe, 0 with it off), through a lens with 1 px of lateral
+        chromatic aberration a 40-px piece is linked 6 stripes off (30).  The gained pixels' factor
+        is 0.75-1 there as on the face: no threshold on it tells them apart.  A narrower min/max
+        window everywhere (``norm_window_px`` 9) put pixels on wrong stripes at the paper rig too.
     camera_gamma : the camera's encoding gamma; pixel values are linearised as
         ``255 (v/255)**camera_gamma`` first (1 = linear camera), so that boundary midpoints,
         crosstalk and colour balance are physical (sRGB-like cameras: 2.2).
@@ -459,6 +481,7 @@ class DecodeParams:
     threshold: str = "local"
     threshold_window_px: int = 15
     norm_window_px: int = 15
+    envelope_follow_px: int = 0
     camera_gamma: float = 2.2
     dark_level: float = 2.0
     saturation_level: int = 250
@@ -516,6 +539,8 @@ class DecodeParams:
             bad("threshold", f"must be 'local' or 'global', got {self.threshold!r}")
         if int(self.threshold_window_px) < 3 or int(self.norm_window_px) < 3:
             bad("threshold_window_px/norm_window_px", "must be >= 3")
+        if int(self.envelope_follow_px) != 0 and int(self.envelope_follow_px) < 3:
+            bad("envelope_follow_px", f"must be 0 (off) or a window of at least 3 px, got {self.envelope_follow_px}")
         if not 0.2 <= float(self.camera_gamma) <= 5:
             bad("camera_gamma", f"must be in [0.2, 5], got {self.camera_gamma}")
         if not 0 <= float(self.min_run_swing) < 1:
@@ -1146,7 +1171,14 @@ def _stage3_args(params: DecodeParams) -> tuple:
     # the rule parameters of stage 3's row kernels (kernels.classify_image / classify_frame /
     # stream_frame): the per-pixel ones, then the faint-run rule's (kernels.faint_runs_row)
     return (*_rule_args(params), np.float32(params.min_run_separation), np.float32(params.min_run_swing),
-            int(params.unwrap.max_gap_px) + 1)
+            int(params.unwrap.max_gap_px) + 1, _follow_window(params))
+
+
+def _follow_window(params: DecodeParams) -> int:
+    # the odd narrow window of kernels.follow_envelope_row; 0 (off) unless narrower than the
+    # min/max window (no narrower window: nothing to follow)
+    n = int(params.envelope_follow_px) | 1 if int(params.envelope_follow_px) > 0 else 0
+    return n if n < (int(params.norm_window_px) | 1) else 0
 
 
 def _threshold_window(params: DecodeParams) -> int:

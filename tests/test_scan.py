@@ -484,6 +484,8 @@ def test_decoder_and_cleaning_flags_are_one_set_across_commands():
         assert decode_cmd.decode_params_from_args(p.parse_args(head + old)) == want, mod.__name__
         text = p.format_help()
         assert "--local-window-px" in text and "--window-px" not in text and "--window " not in text
+        a = p.parse_args(head + ["--follow-envelope-px", "9"])     # the opt-in following envelope
+        assert decode_cmd.decode_params_from_args(a) == DecodeParams(envelope_follow_px=9)
         if mod is not decode_cmd:
             a = p.parse_args(head + ["--max-jump", "0.02", "--clean-param", "normal_step_px=3", "--max-sigma-mm", "0.25"])
             c = scan_cmd.clean_params_from_args(a)

@@ -384,15 +384,17 @@ def hanging_patch(spec: PatternSpec, width: int, first: int = 10, px: int = 3):
     return np.ascontiguousarray(lab)
 
 
-def link_hanging(spec, lab, p, grad: float = 0.0, width: int = 0, px: int = 3):
+def link_hanging(spec, lab, p, grad: float = 0.0, width: int = 0, px: int = 3, bend_rows: int = 0):
     """unwrap, index and link ``lab`` (columns exact from the relative index); the patch's
     columns (rows 24-33, ``width`` px) tilt by ``grad`` projector px per row along the stripes,
-    continuing the rows below at the contact row 33."""
+    continuing the rows below at the contact row 33 -- or, with ``bend_rows``, at row
+    ``33 - bend_rows``, the rows below it keeping the columns of the surface below (as the
+    along-stripe blur mixes the rows next to a contact)."""
     u = uw.unwrap(lab, p)
     idx = uw.index_regions(lab, u.relative, u.region, u.region_px.size, spec, p)
     uu = np.arange(lab.shape[1])
     col_rel = (u.relative * spec.stripe_px + (((uu % px) + 0.5) * spec.stripe_px / px - 0.5)).astype(np.float32)
-    col_rel[24:34, :width] += (grad * (np.arange(24, 34) - 33.0)).astype(np.float32)[:, None]
+    col_rel[24:34, :width] += (grad * np.minimum(np.arange(24, 34) - 33.0 + bend_rows, 0.0)).astype(np.float32)[:, None]
     reg = np.where(u.region >= 0, u.region, idx.offset.size)
     ind, off = np.r_[idx.indexed, False][reg], np.r_[idx.offset, 0][reg]
     col_abs = np.where(ind, col_rel + off * spec.stripe_px, np.nan).astype(np.float32)
@@ -426,9 +428,30 @@ def test_component_hanging_at_a_gradient_step_is_not_linked(width, grad, linked_
     assert linked(spec, lab5, col5, p)[2].stats["components_linked"] == 1
 
 
-def test_stripe_gradient_jumps_kernel_equals_least_squares():
+def test_gradient_test_skips_the_rows_the_blur_mixes_at_the_contact():
+    """``link_grad_skip_rows``: the patch's stripes lean 0.15 px per row against the rows below
+    (0), but its 3 rows next to the contact keep the columns of the surface below (the
+    along-stripe blur mixes them, as on a dim glossy box hanging 46 rows from the wall above it,
+    8 stripes off).  Measured from the contact row the change is about half of it, under
+    ``link_grad_tol``, and the patch is linked; from 3 rows in it is refused."""
+    spec = PatternSpec()
+    lab = hanging_patch(spec, 15)
+    p = uw.UnwrapParams(min_region_px=150, min_marker_px=5)
+    assert p.link_grad_skip_rows == 3
+    _, _, lk = link_hanging(spec, lab, p, 0.15, 15, bend_rows=3)
+    assert lk.stats["components_linked"] == 0 and lk.stats["refused_gradient"] == 1
+    _, _, lk0 = link_hanging(spec, lab, dataclasses.replace(p, link_grad_skip_rows=0), 0.15, 15, bend_rows=3)
+    assert lk0.stats["components_linked"] == 1 and lk0.stats["refused_gradient"] == 0
+    # a patch leaning with the surface below is linked either way
+    _, _, lk1 = link_hanging(spec, lab, p, 0.0, 15, bend_rows=3)
+    assert lk1.stats["components_linked"] == 1
+
+
+@pytest.mark.parametrize("skip", [0, 3])
+def test_stripe_gradient_jumps_kernel_equals_least_squares(skip):
     """kernels.stripe_gradient_jumps against np.polyfit: random columns with a gradient step at
-    contacts above and below, components cut short (fewer than 3 rows: NaN) and unlisted ones."""
+    contacts above and below, components cut short (fewer than 3 rows: NaN) and unlisted ones;
+    the component's rows from ``skip`` rows past the contact on."""
     from gbscan import kernels
 
     rng = np.random.default_rng(5)
@@ -447,7 +470,7 @@ def test_stripe_gradient_jumps_kernel_equals_least_squares():
     vl = np.array([3, 7, 12, 15, 5, -1 - 19], np.int64)    # the last: a vote along a row (not measured)
     vv = np.array([19, 19, 25, 25, 3, 19], np.int64)
     slot = np.array([0, 1, 2], np.int64)
-    got, where = kernels.stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows)
+    got, where = kernels.stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows, skip)
     np.testing.assert_array_equal(where, [1, 1, 0, 0, -1, -1])   # below, below, above, above, not measured
 
     def ls(y, x):
@@ -459,7 +482,7 @@ def test_stripe_gradient_jumps_kernel_equals_least_squares():
             assert np.isnan(got[i])
             continue
         d = -1 if c == 1 else 1
-        rin = np.array([v - d * j for j in range(rows + 1)])
+        rin = np.array([v - d * (j + skip) for j in range(rows + 1)])
         rin = rin[(rin >= 0) & (rin < H)]
         rin = rin[np.cumprod(comp[rin, u] == c).astype(bool)]
         rout = np.array([v + d * (j + 1) for j in range(rows + 1)])
@@ -511,9 +534,10 @@ def test_gradient_jump_verdicts_equal_the_median_test_over_the_measured_votes():
         comps = np.array([0, 1, 3], np.int64)
         slot = np.full(4, -1, np.int64)
         slot[comps] = np.arange(3)
+        skip = trial % 4              # the rows skipped past the contact (link_grad_skip_rows)
         got = kernels.gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot,
-                                             np.array([3, 3, 3], np.int64), rows, tol, z, 5, 0.005)
-        diff, where = kernels.stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows)
+                                             np.array([3, 3, 3], np.int64), rows, tol, z, 5, 0.005, skip)
+        diff, where = kernels.stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows, skip)
         def test(d):
             med = np.median(d)
             zz = abs(med) / (1.4826 * max(np.median(np.abs(d - med)), 0.005) / np.sqrt(d.size))
@@ -565,7 +589,7 @@ def test_link_params_are_validated():
         uw.UnwrapParams(link_tol_px=5.0)
     with pytest.raises(GBError, match="link_votes"):
         uw.UnwrapParams(link_votes=-1)
-    for bad in ({"link_grad_tol": -0.1}, {"link_grad_z": -1.0}, {"link_grad_rows": 1}):
+    for bad in ({"link_grad_tol": -0.1}, {"link_grad_z": -1.0}, {"link_grad_rows": 1}, {"link_grad_skip_rows": -1}):
         with pytest.raises(GBError, match="link_grad"):
             uw.UnwrapParams(**bad)
 

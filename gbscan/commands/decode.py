@@ -93,6 +93,11 @@ DECODE_FLAGS = {
                    "decode frames whose stripes are wide in the camera (over 5 px: a camera with more pixels "
                    "than the paper's) shrunk to ~3.75 px per stripe, the results expanded back to every pixel "
                    "(auto, the default), never, or shrink by F"),
+    "--follow-envelope-px": (("envelope_follow_px",), int, "N",
+                             "let the local normalisation follow the stripes' brightness over N px (about a "
+                             "stripe period: 9 at the paper rig; 0 = off, the default): more of a glossy or "
+                             "shaded face is decoded (docs/method.md, 'Glossy surfaces'; not yet safe at "
+                             "every geometry, so not the default)"),
     "--angle-deg": (("stripe_angle_deg",), float, "DEG", "stripe direction from vertical, degrees (default 0)"),
     "--threshold": (("threshold",), str, None, "thresholding: local (default) or global"),
     "--gamma": (("camera_gamma",), float, "G", "camera encoding gamma (default 2.2; 1 = linear camera)"),

@@ -423,6 +423,49 @@ def pad_reflect101(p, h, W):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _narrow_max_row(x, n, P, M, ta, tb, out):
+    # out = the box mean over n of the running maximum over n of x (both BORDER_REPLICATE), as
+    # the wide envelope's maximum (_minmax_smooth_row) with the narrow window; P, M, ta, tb:
+    # scratch of at least W + 2 (n // 2) samples
+    W = x.size
+    h = n // 2
+    m = W + 2 * h
+    p = P[:m]
+    q = p[h:h + W]
+    for u in range(W):
+        q[u] = x[u]
+    pad_replicate(p, h, W)
+    _slide_max(p, n, ta, tb, M, h)
+    pad_replicate(M[:m], h, W)
+    box_row(M[:m], n, ta, tb, np.float32(1.0 / n), out)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def follow_envelope_row(g, b, n, P, M, ta, tb, ng, nb, lo_g, hi_g, lo_b, hi_b):
+    """The envelope follows the pattern's brightness within a stripe period (``DecodeParams.
+    envelope_follow_px``): where both channels' maxima over the narrow window ``n`` stay below
+    the wide window's (a highlight, a brighter surface or the lit side of a shading gradient
+    within its reach), the local ranges ``hi - lo`` of both channels shrink by the same factor
+    ``k = min(1, max((ng - lo_g) / (hi_g - lo_g), (nb - lo_b) / (hi_b - lo_b)))``, ``ng, nb`` the
+    narrow maxima (:func:`_narrow_max_row`).  The larger of the two ratios: a stripe wider than
+    the narrow window keeps its own colour's maximum near the wide one, so k stays near 1 there;
+    one common factor keeps the colour balance of the envelope.  Updates ``hi_g, hi_b`` in place
+    (lo unchanged); ``ng, nb`` (W,) scratch, P, M, ta, tb of at least W + 2 (n // 2) samples."""
+    _narrow_max_row(g, n, P, M, ta, tb, ng)
+    _narrow_max_row(b, n, P, M, ta, tb, nb)
+    for u in range(ng.size):
+        lg = lo_g[u]
+        lb = lo_b[u]
+        rg = hi_g[u] - lg
+        rb = hi_b[u] - lb
+        kg = (ng[u] - lg) / max(rg, _EPS_RANGE)
+        kb = (nb[u] - lb) / max(rb, _EPS_RANGE)
+        k = min(max(kg, kb), _F1)
+        hi_g[u] = lg + rg * k
+        hi_b[u] = lb + rb * k
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def classify_row(g, b, d, thr, lo_g, hi_g, lo_b, hi_b, raw_g, raw_b, raw_hi, raw_max, cyan_level, min_level,
                  raw_margin, min_contrast, dark_level, saturation_level, labels, reason, gn, bn, contrast):
     """Per-pixel rules of :func:`gbscan.decode.classify` along one row (branch-free, vectorises).
@@ -1019,11 +1062,13 @@ def _raw_hi_row(raw_g, raw_b, w, P, ta, tb, out):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def classify_image(g, b, gbal, bbal, raw_g, raw_b, raw_max, thr_w, norm_w, cyan_level, min_level, raw_margin,
-                   min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap):
+                   min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, follow_w):
     """Stage 3 on whole images (the reference path of :func:`classify_frame`; see
     :func:`gbscan.decode.classify`).  g, b : blurred linear channels; gbal, bbal : balanced;
     raw_g, raw_b : linear before blurring; raw_max : uint8 max of raw green and blue (all (H, W)).
-    thr_w : odd local threshold window (0: global).  Returns labels, reason, d, thr, gn, bn, contrast.
+    thr_w : odd local threshold window (0: global).  follow_w : odd narrow window of
+    :func:`follow_envelope_row` (0: the wide envelope alone).  Returns labels, reason, d, thr, gn,
+    bn, contrast.
     """
     H, W = g.shape
     d = np.empty((H, W), np.float32)
@@ -1043,7 +1088,16 @@ def classify_image(g, b, gbal, bbal, raw_g, raw_b, raw_max, thr_w, norm_w, cyan_
     ta = np.empty(n, np.float32)
     tb = np.empty(n, np.float32)
     raw_hi = np.empty(W, np.float32)
+    nf = W + 2 * (follow_w // 2)
+    Pf = np.empty(nf, np.float32)
+    Mf = np.empty(nf, np.float32)
+    fa = np.empty(nf, np.float32)
+    fb = np.empty(nf, np.float32)
+    ng = np.empty(W, np.float32)
+    nb = np.empty(W, np.float32)
     for v in range(H):
+        if follow_w > 0:
+            follow_envelope_row(g[v], b[v], follow_w, Pf, Mf, fa, fb, ng, nb, lo_g[v], hi_g[v], lo_b[v], hi_b[v])
         _raw_hi_row(raw_g[v], raw_b[v], norm_w, P, ta, tb, raw_hi)
         classify_row(g[v], b[v], d[v], thr[v], lo_g[v], hi_g[v], lo_b[v], hi_b[v], raw_g[v], raw_b[v], raw_hi,
                      raw_max[v], cyan_level, min_level, raw_margin, min_contrast, dark_level, saturation_level,
@@ -1086,8 +1140,8 @@ def blur_frame(img, lut, kh, Lg, Lb, rmax, Bg, Bb):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def classify_frame(Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin, min_contrast,
-                   dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, labels, reason, gn, bn,
-                   contrast):
+                   dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, follow_w, labels, reason,
+                   gn, bn, contrast):
     """Stages 2-3 of the fast path in one pass over the rows: colour balance with the global scales
     ``sg, sb``, ``d``, its local threshold, local min/max and the per-pixel rules.
 
@@ -1100,15 +1154,15 @@ def classify_frame(Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w, cyan_level, min_
     no_img = np.empty((0, 0, 3), np.uint8)
     no_kernel = np.empty(0, np.float32)
     _rows_1_3(False, no_img, no_kernel, no_kernel, Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w, cyan_level, min_level,
-              raw_margin, min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, labels,
-              reason, gn, bn, contrast)
+              raw_margin, min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap,
+              follow_w, labels, reason, gn, bn, contrast)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _classify_scratch(W, thr_w, norm_w):
+def _classify_scratch(W, thr_w, norm_w, follow_w):
     # the row scratch of _rows_1_3: separate arrays (rows of one 2-D array would not vectorise)
     t = thr_w // 2
-    n = W + 2 * (norm_w // 2)
+    n = W + 2 * (max(norm_w, follow_w) // 2)
     nt = W + 2 * t
     f32 = np.float32
     return (np.empty((2 * t + 2, W), f32), np.empty(2 * t + 2, np.int64),                    # Dr, rows
@@ -1119,13 +1173,14 @@ def _classify_scratch(W, thr_w, norm_w):
             np.empty(n, f32), np.empty(n, f32), np.empty(n, f32), np.empty(n, f32),             # s4 .. s7
             np.empty(n, f32), np.empty(n, f32),                                                 # ta, tb
             np.empty(W, f32), np.empty(W, f32), np.empty(W, f32), np.empty(W, f32),             # lo_g .. hi_b
-            np.empty(W, f32), np.empty(W + 1, np.int32))                                        # raw_hi, run starts
+            np.empty(W, f32), np.empty(W + 1, np.int32),                                        # raw_hi, run starts
+            np.empty(W, f32), np.empty(W, f32))                                                 # ng, nb
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _rows_1_3(stream, img, lut, kh, Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin,
-              min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, labels, reason, gn,
-              bn, contrast):
+              min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, follow_w, labels,
+              reason, gn, bn, contrast):
     # The row loop of classify_frame (stream False: Lg .. Bb whole images) and stream_frame (stream
     # True: rings of rows, filled from img as the loop goes; img, lut, kh unused otherwise).  Step y
     # (y = 0 .. H + thr_w//2 - 1): d of blurred row y (y < H) into the ring of the threshold window,
@@ -1141,7 +1196,7 @@ def _rows_1_3(stream, img, lut, kh, Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w,
     h = norm_w // 2
     nD = 2 * t + 2
     (Dr, rows, Pd, tda, tdb, thr, Pg, Pb, LOg, HIg, LOb, HIb, s0, s1, s2, s3, s4, s5, s6, s7, ta, tb,
-     lo_g, hi_g, lo_b, hi_b, raw_hi, rs) = _classify_scratch(W, thr_w, norm_w)
+     lo_g, hi_g, lo_b, hi_b, raw_hi, rs, ng, nb) = _classify_scratch(W, thr_w, norm_w, follow_w)
     flat = img.reshape(img.shape[0], 3 * img.shape[1])     # rows of bytes (see _linear_row)
     r = kh.size - 1
     grow = np.empty(2 * r + 2, np.int64)
@@ -1206,6 +1261,8 @@ def _rows_1_3(stream, img, lut, kh, Lg, Lb, rmax, Bg, Bb, sg, sb, thr_w, norm_w,
             _box4_8to15(LOg, HIg, LOb, HIb, norm_w, s0, s_norm, lo_g, hi_g, lo_b, hi_b)
         else:
             _box4(LOg, HIg, LOb, HIb, norm_w, s0, s1, s2, s3, s4, s5, s6, s7, s_norm, lo_g, hi_g, lo_b, hi_b)
+        if follow_w > 0:
+            follow_envelope_row(g, b, follow_w, Pg, LOg, ta, tb, ng, nb, lo_g, hi_g, lo_b, hi_b)
         _raw_hi_row(raw_g, raw_b, norm_w, Pg, ta, tb, raw_hi)
         classify_row(g, b, Dr[v % nD], thr, lo_g, hi_g, lo_b, hi_b, raw_g, raw_b, raw_hi, rmax[v % nL], cyan_level,
                      min_level, raw_margin, min_contrast, dark_level, saturation_level,
@@ -1275,8 +1332,8 @@ def balance_samples(img, lut, kh, gs, bs):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def stream_frame(img, lut, kh, sg, sb, thr_w, norm_w, cyan_level, min_level, raw_margin, min_contrast,
-                 dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, Rg, Rb, Rm, Qg, Qb, labels,
-                 reason, gn, bn, contrast):
+                 dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap, follow_w, Rg, Rb, Rm, Qg, Qb,
+                 labels, reason, gn, bn, contrast):
     """Stages "input", 1, 2 (with the global scales ``sg, sb``, from :func:`balance_samples`) and 3
     of the fast path in one pass over the rows: each image row is linearised into a ring of rows
     (Rg, Rb float32, Rm uint8 raw maximum: (nL, W)), blurred into a ring (Qg, Qb: (nB, W)) as soon
@@ -1294,7 +1351,7 @@ def stream_frame(img, lut, kh, sg, sb, thr_w, norm_w, cyan_level, min_level, raw
         raise ValueError("stream_frame: rings too small (see stream_rows)")
     return _rows_1_3(True, img, lut, kh, Rg, Rb, Rm, Qg, Qb, sg, sb, thr_w, norm_w, cyan_level, min_level,
                      raw_margin, min_contrast, dark_level, saturation_level, min_run_sep, min_run_swing, run_end_gap,
-                     labels, reason, gn, bn, contrast)
+                     follow_w, labels, reason, gn, bn, contrast)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

@@ -1392,9 +1392,10 @@ def component_marker_counts(comp, relative, labels, comp_shift, take, is_marker)
 
 
 @njit(cache=True, nogil=True)
-def _gradient_step(comp, col_rel, col_abs, c, u, v, rows, acc):
+def _gradient_step(comp, col_rel, col_abs, c, u, v, rows, skip, acc):
     # (d column / d v in the component minus in the reported pixels at the vote (v, u) of
     # component c, the side of the reported pixels: 0 above, 1 below); see stripe_gradient_jumps.
+    # The component's rows are taken from ``skip`` rows past the contact row on.
     # The difference is NaN where either side has fewer than 3 rows.  acc: (5,) float64 scratch
     H = comp.shape[0]
     d = 1
@@ -1405,7 +1406,7 @@ def _gradient_step(comp, col_rel, col_abs, c, u, v, rows, acc):
     for side in range(2):
         acc[:] = 0.0
         for j in range(rows + 1):
-            q = v - d * j if side == 0 else v + d * (j + 1)
+            q = v - d * (j + skip) if side == 0 else v + d * (j + 1)
             if q < 0 or q >= H:
                 break
             if side == 0:
@@ -1428,7 +1429,7 @@ def _gradient_step(comp, col_rel, col_abs, c, u, v, rows, acc):
 
 
 @njit(cache=True, nogil=True)
-def stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows):
+def stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows, skip=0):
     """Per vertical link vote: how the column's gradient along the stripes changes at the contact.
 
     ``vc, vl, vv`` (n,) a component's votes as :func:`link_votes` returns them (component, line:
@@ -1436,8 +1437,9 @@ def stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows):
     components with ``slot[c] >= 0`` are measured.  The reported pixels the vote came from lie
     above the candidate when its two pixels above are reported (``col_abs`` finite), else below.
     The gradient ``d column / d v`` (projector px per camera row, least squares) is taken over
-    the candidate's column from the contact row into the component (``comp == c``, ``col_rel``
-    finite, up to ``rows + 1`` rows, contiguous) and from the first reported row beyond the
+    the candidate's column from ``skip`` rows past the contact row into the component (``comp ==
+    c``, ``col_rel`` finite, up to ``rows + 1`` rows, contiguous; the rows skipped are those the
+    along-stripe blur mixes with the other side) and from the first reported row beyond the
     contact into the reported pixels (``col_abs`` finite, up to ``rows + 1`` rows).  Returns
     (n,) float64 component minus reported gradient, NaN where either side has fewer than 3 rows,
     and (n,) int8 the side of the reported pixels (0 above, 1 below; -1 not measured).
@@ -1448,7 +1450,7 @@ def stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows):
     acc = np.zeros(5)
     for i in range(n):
         if vl[i] >= 0 and slot[vc[i]] >= 0:
-            g, w = _gradient_step(comp, col_rel, col_abs, vc[i], vl[i], vv[i], rows, acc)
+            g, w = _gradient_step(comp, col_rel, col_abs, vc[i], vl[i], vv[i], rows, skip, acc)
             out[i] = g
             if not np.isnan(g):
                 where[i] = w
@@ -1467,7 +1469,7 @@ def _median_test(d, tol, z, floor):
 
 @njit(cache=True, nogil=True)
 def gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot, offset, rows, tol, z, min_votes,
-                           floor):
+                           floor, skip=0):
     """Per slot: does the column's gradient along the stripes jump where the component meets the
     reported pixels?  The agreeing (``good``) vertical votes of each component ``c`` with
     ``slot[c] >= 0`` at its offset ``offset[slot[c]]`` (``vk``, periods of two stripes) are
@@ -1491,7 +1493,7 @@ def gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot, o
         k = slot[c]
         if k < 0 or vk[i] != offset[k]:
             continue
-        g, w = _gradient_step(comp, col_rel, col_abs, c, vl[i], vv[i], rows, acc)
+        g, w = _gradient_step(comp, col_rel, col_abs, c, vl[i], vv[i], rows, skip, acc)
         if not np.isnan(g):
             diff[i] = g
             key[i] = 2 * k + w
