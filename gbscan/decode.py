@@ -112,10 +112,11 @@ class DecodeParams:
         two glossy multi-object frames -9..-10: a box's two faces made one region whose markers then
         disagree, dropped), 0 wrong; room light 91.99 -> 92.16 %, clean 90.10 -> 90.76 %, 0 wrong
         both.  **Not the default** because it revives marginal pixels of the multi-object scene's
-        dim box, whose contact with the wall the unwrapping does not always cut: at 150-160 mm
-        baselines (``--set baselines``) a strip of its top joins the wall's region 8 stripes off
-        (1140 pixels on a wrong stripe, 0 with it off), through a lens with 1 px of lateral
-        chromatic aberration a 40-px piece is linked 6 stripes off (30).  The gained pixels' factor
+        dim tilted panel, whose contacts with the wall the unwrapping does not always cut: at
+        150-160 mm baselines (``--set baselines``) the two unlabelled columns at its silhouette
+        become labelled, its rows are no longer parted there, and a strip of its top joins the
+        wall's region 8 stripes off (1140 pixels on a wrong stripe, 0 with it off); through a lens
+        with 1 px of lateral chromatic aberration a 40-px piece is linked 6 stripes off (30).  The gained pixels' factor
         is 0.75-1 there as on the face: no threshold on it tells them apart.  A narrower min/max
         window everywhere (``norm_window_px`` 9) put pixels on wrong stripes at the paper rig too.
     camera_gamma : the camera's encoding gamma; pixel values are linearised as

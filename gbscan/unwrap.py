@@ -259,7 +259,7 @@ class UnwrapParams:
         0.11-0.26 px per row at z 5-8 (its relief): z 5 would cost it 1.0-1.4 points.
     link_grad_skip_rows : the component's gradient is taken from this many rows past the contact
         on: the along-stripe blur mixes the first rows with the surface beyond the contact, and
-        their columns bend toward it.  A dim glossy box hanging 46 rows from the wall above it
+        their columns bend toward it.  A dim glossy panel hanging 46 rows from the wall above it
         (the moving multi-object frame 4 with ``--gloss 1,30`` and ``DecodeParams.
         envelope_follow_px``), 8 stripes off, its gradient -0.23 px per row against the wall's
         0.00, measured from the contact as about 0 and linked (667 wrong pixels); from 3 rows in

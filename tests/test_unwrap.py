@@ -431,7 +431,7 @@ def test_component_hanging_at_a_gradient_step_is_not_linked(width, grad, linked_
 def test_gradient_test_skips_the_rows_the_blur_mixes_at_the_contact():
     """``link_grad_skip_rows``: the patch's stripes lean 0.15 px per row against the rows below
     (0), but its 3 rows next to the contact keep the columns of the surface below (the
-    along-stripe blur mixes them, as on a dim glossy box hanging 46 rows from the wall above it,
+    along-stripe blur mixes them, as on a dim glossy panel hanging 46 rows from the wall above it,
     8 stripes off).  Measured from the contact row the change is about half of it, under
     ``link_grad_tol``, and the patch is linked; from 3 rows in it is refused."""
     spec = PatternSpec()
