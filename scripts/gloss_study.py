@@ -112,14 +112,28 @@ def main(argv=None) -> int:
     from gbscan.errors import GBError
     from gbscan.pattern import PatternSpec, render_pattern
 
+    names = [x for x in args.scenes.split(",") if x]
+    bad = [x for x in names if x not in ("fran_face", "head", "sphere")]
+    if bad or not names:
+        print(f"gloss_study: unknown scene(s) {bad or args.scenes!r}; expected fran_face, head or sphere",
+              file=sys.stderr)
+        return 2
     try:
         ks_list = [float(x) for x in args.ks.split(",") if x]
         shin_list = [float(x) for x in args.shininess.split(",") if x]
+    except ValueError:
+        print(f"gloss_study: --ks {args.ks!r} / --shininess {args.shininess!r}: expected comma-separated numbers",
+              file=sys.stderr)
+        return 2
+    try:
         base = DecodeParams(**pairs_to_kwargs(DecodeParams, args.decode, "--decode"))
         params = {"following": dataclasses.replace(base, envelope_follow_px=args.follow_px),
                   "wide alone": dataclasses.replace(base, envelope_follow_px=0)}
     except (ValueError, GBError) as e:
         print(f"gloss_study: {e}", file=sys.stderr)
+        return 2
+    if not ks_list or not shin_list:
+        print("gloss_study: --ks and --shininess need at least one value each", file=sys.stderr)
         return 2
     spec = PatternSpec()
     pattern = render_pattern(spec)
@@ -127,7 +141,7 @@ def main(argv=None) -> int:
     cond0 = dataclasses.replace(sim.preset("typical"), supersample=3)
     print(f"# glossy surfaces: % of lit non-edge pixels reported (pixels on a wrong stripe off depth edges), "
           f"seed {args.seed}, typical preset, supersample 3; envelope_follow_px {args.follow_px} / 0")
-    for name in args.scenes.split(","):
+    for name in names:
         scene = _scene(name)
         if scene is None:
             print(f"## {name}: skipped (../shared/data/fran_face is not here)")
