@@ -149,8 +149,8 @@ def main(argv=None) -> int:
         print(f"## {name}", flush=True)
         matte = sim.render(rig, scene, pattern, cond0, seed=args.seed)
         res = {label: decode(matte.image, spec, p) for label, p in params.items()}
-        line = " | ".join(f"{label} {_score(sm, matte, spec.stripe_px)[0]:5.1f} ({_score(sm, matte, spec.stripe_px)[1]})"
-                          for label, sm in res.items())
+        scores = {label: _score(sm, matte, spec.stripe_px) for label, sm in res.items()}
+        line = " | ".join(f"{label} {s[0]:5.1f} ({s[1]})" for label, s in scores.items())
         print(f"   matte:                      {line}", flush=True)
         matte_ok = res["following"].valid | res["wide alone"].valid
         shown = (max(ks_list), shin_list[len(shin_list) // 2])

@@ -52,7 +52,7 @@ def main(argv=None) -> int:
                          "the unwrapping's), e.g. crop=false")
     from gbscan.cli_common import add_capture_arguments, capture_fields, capture_label
 
-    add_capture_arguments(ap)   # --jpeg, --jpeg-sampling, --yuv, --lateral-ca-px: how the camera delivers frames
+    add_capture_arguments(ap)   # --jpeg, --jpeg-sampling, --yuv, --lateral-ca-px, --gloss: the camera, lens, surfaces
     args = ap.parse_args(argv)
     try:
         scales = [float(x) for x in args.scales.split(",") if x.strip()]

@@ -207,7 +207,9 @@ def load_or_render(name, preset, seed, ss, factory, cache: Path | None, jpeg: di
     if jpeg and jpeg.get("lateral_ca_px"):
         tag += f"_ca{jpeg['lateral_ca_px']:g}"
     if jpeg and jpeg.get("specular"):
-        tag += f"_gloss{jpeg['specular']:g}_{jpeg.get('shininess', 20.0):g}"
+        from gbscan.sim.presets import DEFAULT_SHININESS
+
+        tag += f"_gloss{jpeg['specular']:g}_{jpeg.get('shininess', DEFAULT_SHININESS):g}"
     f = cache / f"{name}_{preset.replace('+', '_').replace('@', '_').replace('/', '_')}_ss{ss}{tag}.npz" \
         if cache is not None else None
     if f is not None and f.exists():
