@@ -943,7 +943,7 @@ def _shrink_range(stripe_range: np.ndarray, h: int, w: int) -> np.ndarray:
 
 
 def _decode_resampled(img, factor: float, stripe_px_frame: float, pattern: PatternSpec, params: DecodeParams,
-                      keep_stages: bool, stripe_range) -> "StripeMap":
+                      keep_stages: bool, stripe_range, memo: "StreamMemo | None" = None) -> "StripeMap":
     # decode() of the frame shrunk by ``factor``, expanded back to every pixel (DecodeParams.resample);
     # with ``DecodeParams.crop`` only the lit window is shrunk, decoded and expanded (outside it the
     # frame is dark; the shrunk grid then starts at the window's corner)
@@ -966,7 +966,9 @@ def _decode_resampled(img, factor: float, stripe_px_frame: float, pattern: Patte
     # (a window cut out already: the shrunk decode need not look for one again, the same result)
     sm = decode(small, pattern, dataclasses.replace(params, resample=1.0, crop=params.crop and window is None,
                                                     subsampled_chroma="off"),
-                keep_stages=keep_stages, stripe_range=sr)
+                keep_stages=keep_stages, stripe_range=sr,
+                memo=None if memo is None else _ShrunkMemo(memo, shape, factor, 0 if window is None else window[2],
+                                                           img.shape[1] / w))
     t2 = time.perf_counter()
     H, W = img.shape[:2]
     column, stripe, conf, mask, counts = kernels.upsample_stripes(
@@ -2064,8 +2066,118 @@ def _split_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1=
                          sever_px=sever)
 
 
+#: frames a :class:`StreamMemo` reuses a measurement on before measuring it again
+STREAM_REMEASURE_EVERY = 16
+
+
+class StreamMemo:
+    """What :func:`decode` measures on a frame that belongs to the camera rather than the scene,
+    kept for the next frames of one stream (one camera, one lens setting: a video, a live view,
+    ``gbscan batch``; :class:`gbscan.scan.Scanner` keeps one):
+
+    * the resampling factor and the frame's camera px per stripe (:func:`choose_resample`:
+      the stripes' width in the camera, set by the lens and the working distance), ~0.15-0.2 ms
+      a frame;
+    * the lens's lateral chromatic aberration, the fit and its stats
+      (:func:`lateral_chromatic_aberration`), ~0.2-0.5 ms a frame.
+
+    Each is measured on the first frame, reused on the next ``every - 1`` frames that ask for it,
+    then measured again (``every`` 1: every frame, as without a memo).  A measurement is kept
+    only when it was made (a frame with too few colour runs or stripe boundaries keeps none, so
+    a dark first frame is not a stream's reference) and is keyed by what it depends on: the
+    frame's size and the parameters that enter it, so a change of either measures afresh.  On a
+    frame that measures, the result is the same as without a memo, bit for bit; on the others it
+    differs only by the earlier frame's measurement (the same factor; an aberration fit from
+    another frame of the same lens).  The chroma-subsampling check
+    (``DecodeParams.subsampled_chroma``) is never kept: it guards against wrong stripes, and
+    frames of one folder may come from different files.  ``stats['stream']`` says, per
+    quantity, "measured" or "reused" (with the frames since the measurement).  Thread-safe.
+    """
+
+    def __init__(self, every: int = STREAM_REMEASURE_EVERY):
+        if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
+            raise GBError(f"StreamMemo: every must be an integer >= 1 (frames a measurement is used on), got {every!r}")
+        self.every = int(every)
+        self._lock = threading.Lock()
+        self._kept: dict[str, tuple] = {}    # name -> (key, value, uses so far)
+
+    def get(self, name: str, key):
+        """The kept value of ``name`` for ``key`` and the frames since it was measured, counting
+        this use; (None, 0) when there is none to reuse (none kept, another key, or used
+        ``every`` times: measure and :meth:`put`)."""
+        with self._lock:
+            kept = self._kept.get(name)
+            if kept is None or kept[0] != key or kept[2] >= self.every:
+                return None, 0
+            self._kept[name] = (kept[0], kept[1], kept[2] + 1)
+            return kept[1], kept[2]
+
+    def put(self, name: str, key, value) -> None:
+        """Keep ``value`` of ``name`` measured for ``key`` (this frame counts as its first use)."""
+        with self._lock:
+            self._kept[name] = (key, value, 1)
+
+    def clear(self) -> None:
+        """Forget every measurement (the next frame measures): a new lens setting, a new camera."""
+        with self._lock:
+            self._kept.clear()
+
+
+class _ShrunkMemo(StreamMemo):
+    # a stream's memo as the decode of a frame shrunk by ``factor`` sees it (a frame of ``shape``,
+    # or its window from column ``x0``, ``ratio`` full px per shrunk px along the rows): the
+    # aberration fit is kept in the full frame's px (delta = a + k x), whatever the window, and
+    # read in the shrunk frame's: x = c + ratio xs with c = x0 + (ratio - 1) / 2 (pixel centres),
+    # delta = ratio delta_s, so a_s = (a + k c) / ratio and the same k
+
+    def __init__(self, memo: StreamMemo, shape, factor: float, x0: int, ratio: float):
+        self.memo, self.shape, self.factor = memo, tuple(shape), float(factor)
+        self.ratio, self.c = float(ratio), float(x0) + 0.5 * (float(ratio) - 1.0)
+
+    def _key(self, key):
+        return ((self.shape, self.factor),) + tuple(key[1:])
+
+    def get(self, name, key):
+        kept, age = self.memo.get(name, self._key(key))
+        if kept is not None and name == "lateral_ca" and kept[1] is not None:
+            a, k = kept[1]
+            kept = (kept[0], ((a + k * self.c) / self.ratio, k))
+        return kept, age
+
+    def put(self, name, key, value) -> None:
+        if name == "lateral_ca" and value[1] is not None:
+            a, k = value[1]
+            value = (value[0], (self.ratio * a - k * self.c, k))
+        self.memo.put(name, self._key(key), value)
+
+    def clear(self) -> None:
+        self.memo.clear()
+
+
+def _reused(age: int) -> str:
+    # stats['stream']'s word for a measurement an earlier frame made
+    return f"reused (measured {age} frame{'' if age == 1 else 's'} before)"
+
+
+def _choose_resample_memo(img: np.ndarray, params: DecodeParams, memo: StreamMemo | None, note: dict) -> tuple:
+    # choose_resample, through the stream memo when there is one (kept only when measured)
+    if memo is None or params.resample != 0:
+        return choose_resample(img, params)
+    key = (img.shape[:2], float(params.camera_gamma), float(params.dark_level))
+    kept, age = memo.get("resample", key)
+    if kept is not None:
+        note["resample"] = _reused(age)
+        return kept
+    shrink = choose_resample(img, params)
+    if math.isfinite(shrink[1]):
+        memo.put("resample", key, shrink)
+    note["resample"] = "measured"
+    return shrink
+
+
 def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(), *,
-           keep_stages: bool = False, stripe_range: np.ndarray | None = None) -> StripeMap:
+           keep_stages: bool = False, stripe_range: np.ndarray | None = None,
+           memo: StreamMemo | None = None) -> StripeMap:
     """Decode one camera frame of the green-blue stripe pattern.
 
     image_rgb : (H, W, 3) uint8 RGB (uint16 and float in [0, 1] are converted).
@@ -2078,6 +2190,10 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         never chooses a region's offset, it rules out runner-up offsets that would put the whole
         region outside the volume, so regions whose few markers fit two far-apart offsets are
         indexed; a region whose best offset lies outside is dropped ("outside the working volume").
+    memo : a :class:`StreamMemo` shared by the frames of one stream: the resampling factor and
+        the lateral chromatic aberration measured on one frame are reused on the next ones
+        (re-measured every ``memo.every`` frames; ``stats['stream']`` says which).  None: every
+        frame measures them.
 
     Stages 1-3 run fused (``kernels.balance_samples``: the colour balance's samples, then
     ``kernels.stream_frame``: linearise, blur and classify in one pass over the rows) when
@@ -2107,19 +2223,23 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
         raise GBError(f"decode: pattern must be a gbscan.pattern.PatternSpec, got {type(pattern).__name__}")
     if not isinstance(params, DecodeParams):
         raise GBError(f"decode: params must be a DecodeParams, got {type(params).__name__}")
+    if memo is not None and not isinstance(memo, StreamMemo):
+        raise GBError(f"decode: memo must be a gbscan.decode.StreamMemo or None, got {type(memo).__name__}")
     t0 = time.perf_counter()
     img = validate_image(image_rgb)
-    shrink = choose_resample(img, params)
+    note: dict = {}
+    shrink = _choose_resample_memo(img, params, memo, note)
     # a frame decoded shrunk by 2 or more averages each pixel pair's shared colour into one decoded
     # pixel: its stripes keep their colours, and it is not checked (see SUBSAMPLED_CHROMA_SHRINK)
     if params.subsampled_chroma == "off" or shrink[0] >= SUBSAMPLED_CHROMA_SHRINK:
-        return _decode(img, pattern, params, keep_stages, stripe_range, t0, shrink)
+        return _stream_note(_decode(img, pattern, params, keep_stages, stripe_range, t0, shrink, memo), memo, note)
     from .chroma import chroma_check
 
     t1 = time.perf_counter()
     chk = chroma_check(img)
     t2 = time.perf_counter()
-    sm = _decode(img, pattern, params, keep_stages, stripe_range, t0 + (t2 - t1), shrink)
+    sm = _stream_note(_decode(img, pattern, params, keep_stages, stripe_range, t0 + (t2 - t1), shrink, memo),
+                      memo, note)
     ms = sm.stats.setdefault("ms", {})
     ms["chroma"] = round((t2 - t1) * 1e3, 3)
     if "total" in ms:
@@ -2133,6 +2253,13 @@ def decode(image_rgb, pattern: PatternSpec, params: DecodeParams = DecodeParams(
                      "regions land on wrong stripes. Capture RGB or raw frames (a camera format without chroma "
                      "subsampling, lossless files), or decode it anyway, wrong stripes possible: "
                      "DecodeParams.subsampled_chroma='decode' (command line: --decode-param subsampled_chroma=decode)")
+    return sm
+
+
+def _stream_note(sm: StripeMap, memo: StreamMemo | None, note: dict) -> StripeMap:
+    # stats['stream'] of a decode with a memo: what it measured and what it reused
+    if memo is not None:
+        sm.stats["stream"] = {**sm.stats.get("stream", {}), **note}
     return sm
 
 
@@ -2153,9 +2280,11 @@ def withhold(sm: StripeMap, why: str) -> StripeMap:
 
 
 def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_stages: bool,
-            stripe_range: np.ndarray | None, t0: float, shrink: tuple | None = None) -> StripeMap:
+            stripe_range: np.ndarray | None, t0: float, shrink: tuple | None = None,
+            memo: StreamMemo | None = None) -> StripeMap:
     # decode() of a validated frame (its chroma checked or not); t0: the clock at its start (the
-    # chroma check's time left out); shrink: choose_resample's answer for it, when known
+    # chroma check's time left out); shrink: choose_resample's answer for it, when known; memo:
+    # the stream's (the aberration fit read from it and kept in it)
     from . import kernels
     from . import unwrap as uw
 
@@ -2168,7 +2297,7 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
                           f"pixel), got {stripe_range.dtype} {stripe_range.shape}")
     factor, frame_px = choose_resample(img, params) if shrink is None else shrink
     if factor > 1.0:   # wide stripes in the camera: decode the frame shrunk to the validated width
-        return _decode_resampled(img, factor, frame_px, pattern, params, keep_stages, stripe_range)
+        return _decode_resampled(img, factor, frame_px, pattern, params, keep_stages, stripe_range, memo)
     snr = None
     if params.blur_sigma_along_px is None:  # automatic: from this frame's stripe SNR
         sigma, snr = auto_blur_sigma(img, params)
@@ -2248,8 +2377,21 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
             x = subpixel_boundaries(cls, sg, ox)
             if params.lateral_ca:
                 if "ca" not in located:
-                    x, located["ca"], located["ca_fit"] = lateral_chromatic_aberration(cls, sg, x, shape[1],
-                                                                                      params, ox)
+                    # (a stream's memo: the fit of an earlier frame of the same size and rule)
+                    ca_key = (shape, float(params.lateral_ca_t), float(params.lateral_ca_min_px))
+                    kept, age = memo.get("lateral_ca", ca_key) if memo is not None else (None, 0)
+                    if kept is not None:
+                        located["ca"], located["ca_fit"] = kept
+                        located["stream"] = _reused(age)
+                        if located["ca_fit"] is not None:
+                            x = correct_lateral_ca(sg, x, *located["ca_fit"])
+                    else:
+                        x, located["ca"], located["ca_fit"] = lateral_chromatic_aberration(cls, sg, x, shape[1],
+                                                                                          params, ox)
+                        if memo is not None:
+                            located["stream"] = "measured"
+                            if located["ca"] is not None:
+                                memo.put("lateral_ca", ca_key, (located["ca"], located["ca_fit"]))
                 elif located["ca_fit"] is not None:
                     x = correct_lateral_ca(sg, x, *located["ca_fit"])
             located["segs"], located["x"] = sg, x
@@ -2409,7 +2551,9 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
     stats["rim_guard_px"], stats["rim_step_px"] = int(n_guard), int(n_step)
     stats["transitions_joined"] = int(joined.size)
     if ca is not None:
-        stats["lateral_ca"] = ca
+        stats["lateral_ca"] = dict(ca)
+    if "stream" in located:
+        stats["stream"] = {"lateral_ca": located["stream"]}
     stats["decoded_window"] = _window_stat(window, shape)
     stats["ms"] = {k: round(v, 3) for k, v in ms.items()}
     stats["blur_sigma_along_px"] = float(params.blur_sigma_along_px)

@@ -237,10 +237,17 @@ class Scanner:
     decode_params : :class:`gbscan.decode.DecodeParams` (default: its defaults).
     clean_params : :class:`gbscan.clean.CleanParams` (default: its defaults).
     min_angle_deg : rays closer than this to a light plane give no point.
+    remeasure_every : the frames it scans are one stream of its camera: the decoder's measurements
+        of the camera rather than the scene (the resampling factor, the lens's lateral chromatic
+        aberration) are made on one frame and reused on the next ones, measured again every
+        ``remeasure_every`` frames (:class:`gbscan.decode.StreamMemo`, :attr:`memo`; 1: on every
+        frame).  After a change of lens setting call ``scanner.memo.clear()``.
     """
 
     def __init__(self, calibration: Calibration | str | Path, *, pattern: PatternSpec | None = None,
-                 decode_params=None, clean_params: CleanParams | None = None, min_angle_deg: float = 2.0):
+                 decode_params=None, clean_params: CleanParams | None = None, min_angle_deg: float = 2.0,
+                 remeasure_every: int | None = None):
+        from .decode import STREAM_REMEASURE_EVERY, StreamMemo
         from .heap import keep_freed_memory
         from .triangulate import GridTriangulator, PlaneTable
 
@@ -268,6 +275,10 @@ class Scanner:
         # every pixel's ray (distortion inverted) and the planes in the form the frame kernel uses
         self.triangulator = GridTriangulator(self.camera, self.planes, min_angle_deg=self.min_angle_deg)
         self._rays = None
+        try:
+            self.memo = StreamMemo(STREAM_REMEASURE_EVERY if remeasure_every is None else remeasure_every)
+        except GBError as e:
+            raise GBError(f"Scanner: remeasure_every: {e}") from None
 
     @property
     def rays(self) -> np.ndarray:
@@ -313,7 +324,7 @@ class Scanner:
         t0 = time.perf_counter()
         params = self.decode_params or DecodeParams()
         sm = decode(image_rgb, self.pattern, params, keep_stages=keep_stages,
-                    stripe_range=self.stripe_range)
+                    stripe_range=self.stripe_range, memo=self.memo)
         t_dec = (time.perf_counter() - t0) * 1e3
         # the column errors are read (a resampled decode expands them) only if the cleaning needs them
         need_sigma = clean and self.clean_params.max_sigma_mm is not None

@@ -24,6 +24,10 @@ darkness (the head, the sphere) is decoded in its lit window alone (``DecodePara
 result, or for a frame decoded shrunk a grid starting at the window's corner); the script then
 also times the whole frame (``--decode-param crop=false``).
 
+For the default decode also the mean per frame of a stream (:class:`gbscan.decode.StreamMemo`,
+as a Scanner, ``gbscan batch`` and the live scan decode: the camera's resampling factor and lens
+aberration measured every 16th frame and reused between), alternating with single frames.
+
 Also printed: CPU milliseconds of the calling thread (less sensitive than wall time to other
 processes on the machine), minor page faults per frame (fresh output pages: on this virtual
 machine a fault costs about 2 us, i.e. 1-4 ms per frame in a process whose malloc returns freed
@@ -67,6 +71,25 @@ def frames(width: int, scene: str = "plane", preset: str = "typical"):
     sc = sim.scenes.plane(distance_mm=650) if scene == "plane" else getattr(sim.scenes, scene)()
     r = sim.render(rig, sc, render_pattern(PatternSpec()), cond, seed=0)
     return r
+
+
+def stream_ms(img, spec, prm, runs: int) -> tuple[float, float]:
+    """Mean ms per frame of ``decode`` alone and of frames of one stream (a shared
+    :class:`gbscan.decode.StreamMemo`), alternating frame by frame over whole cycles of the memo
+    (at least ``runs`` frames each)."""
+    from gbscan.decode import STREAM_REMEASURE_EVERY, StreamMemo, decode
+
+    memo = StreamMemo()
+    n = STREAM_REMEASURE_EVERY * max(2, -(-runs // STREAM_REMEASURE_EVERY))
+    one, stream = [], []
+    for _ in range(n):
+        t = time.perf_counter()
+        decode(img, spec, prm)
+        one.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        decode(img, spec, prm, memo=memo)
+        stream.append(time.perf_counter() - t)
+    return float(np.mean(one)) * 1e3, float(np.mean(stream)) * 1e3
 
 
 def median_ms(f, runs: int) -> tuple[float, object]:
@@ -176,7 +199,7 @@ def main(argv=None) -> int:
     import cv2
     import numba
 
-    from gbscan.decode import DecodeParams, decode, release_workspace
+    from gbscan.decode import STREAM_REMEASURE_EVERY, DecodeParams, decode, release_workspace
     from gbscan.pattern import PatternSpec
 
     cv2.setNumThreads(args.threads)
@@ -225,6 +248,15 @@ def main(argv=None) -> int:
                   f"{shrunk}")
             print(f"   peak numpy memory {mem:.1f} MB = {mem * 2 ** 20 / (H * W):.0f} bytes/px (workspace included)")
             print("   stages: " + "  ".join(f"{k} {v:.2f}" for k, v in stages.items() if k != "total"))
+            if not label:
+                # frames of one stream (gbscan.decode.StreamMemo, as a Scanner decodes them): the
+                # camera's measurements made every STREAM_REMEASURE_EVERY frames, reused between;
+                # the mean over whole cycles (the measuring frames included), alternating with
+                # single frames in the same loop (the ratio is what the load leaves comparable)
+                t_one, t_stream = stream_ms(img, spec, prm, args.runs)
+                print(f"   in a stream (camera measured every {STREAM_REMEASURE_EVERY} frames, reused between; "
+                      f"mean over whole cycles): {t_stream:.2f} ms against {t_one:.2f} alone, "
+                      f"{t_stream / t_one:.3f} x")
             if "resample" in sm.stats:
                 # relative / region / labels / column_relative are expanded when first read (a scan
                 # never reads them): what a caller that does read them pays on top

@@ -10,8 +10,11 @@ camera has the same horizontal field of view as the paper's 640x480 one.  Prints
 milliseconds per stage per frame size ("triangulate" is the scanner's frame kernel,
 "triangulate ref" the float64 reference :func:`gbscan.triangulate.triangulate`; "clean" and
 "normals" the public functions on the whole frame, "clean in scan()" the cleaning as the scanner
-runs it, on the decoded pixels' window when that is small; the write stages
-include the fsync of the atomic write), then the wall time of the command in a fresh process
+runs it, on the decoded pixels' window when that is small; "decode (stream)" the frames of one
+stream as a Scanner decodes them, the camera's measurements reused between every 16th frame
+(:class:`gbscan.decode.StreamMemo`): "decode" times the ratio of the two means over whole cycles
+(the measuring frames included) alternating with single frames in one loop; the
+write stages include the fsync of the atomic write), then the wall time of the command in a fresh process
 (Python start-up and imports included), without and with --mesh (.ply, .obj, .stl).  Numbers
 depend on the machine and on its load: run it on a quiet machine (``uptime`` load < 1.5).
 """
@@ -98,6 +101,14 @@ def bench_size(width: int, height: int, scene: str, repeats: int, workdir: Path,
         "mesh": median_ms(lambda: grid_mesh(scan.xyz, scan.valid, normals=scan.normals_map), repeats),
         "scan()": median_ms(lambda: scanner.scan(r.image), repeats),
     }
+    # frames of one stream, as a Scanner decodes them (gbscan.decode.StreamMemo: the camera's
+    # measurements made every 16th frame): means over whole cycles, alternating with single frames
+    # (bench_decode.stream_ms); the stream's figure is the single frame's median times their ratio
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from bench_decode import stream_ms
+
+    one, stream = stream_ms(r.image, spec, params, 2 * repeats)
+    out["decode (stream)"] = out["decode"] * stream / one
     # the cleaning as scan() runs it: on the decoded pixels' window when that is small (an object
     # before darkness), with the masking of the rejected points (the rows above: the whole frame)
     tim = [scanner.scan(r.image).timings_ms for _ in range(repeats)]
@@ -142,7 +153,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for w, h in sizes:
             rows[f"{w}x{h}"] = bench_size(w, h, args.scene, args.repeats, Path(tmp), command=not args.no_command)
-    keys = ["points", "triangles", "setup (rays)", "decode", "triangulate", "triangulate ref", "clean", "normals", "clean in scan()",
+    keys = ["points", "triangles", "setup (rays)", "decode", "decode (stream)", "triangulate", "triangulate ref", "clean", "normals", "clean in scan()",
             "mesh", "scan()", "scan()+mesh", "write cloud", "write .ply", "write .obj", "write .stl", "command",
             "command --mesh .ply", "command --mesh .obj", "command --mesh .stl"]
     print(f"median ms per frame, scene '{args.scene}', typical preset ({args.repeats} repeats), "
@@ -154,6 +165,8 @@ def main(argv=None) -> int:
         vals = [rows[s][k] for s in rows]
         print(f"{k:<20}" + "".join(f"{v:>14.0f}" if k in ("points", "triangles") else f"{v:>14.1f}" for v in vals))
     print("decode+triangulate: " + ", ".join(f"{s} {r['decode'] + r['triangulate']:.1f} ms" for s, r in rows.items()))
+    print("decode+triangulate in a stream (a Scanner's frames; mean over whole cycles of its camera measurements): "
+          + ", ".join(f"{s} {r['decode (stream)'] + r['triangulate']:.1f} ms" for s, r in rows.items()))
     return 0
 
 

@@ -212,7 +212,8 @@ def main(argv=None) -> int:
     if "fran_face" in names and not sim.scenes.FRAN_PATH.is_file():
         print(f"# fran_face skipped: {sim.scenes.FRAN_PATH} is not there", file=sys.stderr)
         names.remove("fran_face")
-    scanner = Scanner(calibration_from_rig(sim.paper_rig(), PatternSpec()))
+    # every frame its own measurements (remeasure_every=1): the frames are separate experiments, not a stream
+    scanner = Scanner(calibration_from_rig(sim.paper_rig(), PatternSpec()), remeasure_every=1)
     print(f"# motion study, paper rig, preset {args.preset}, {args.steps} instants per exposure, supersample "
           f"{args.supersample}, true calibration, default decoder and cleaning")
     print(f"{'scene':10s} {'motion':6s} {'travel':>18s} {'reported%':>9s} {'wrong':>5s} {'kept%':>6s} "

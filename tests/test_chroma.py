@@ -7,7 +7,7 @@ import pytest
 
 from gbscan import sim
 from gbscan.chroma import SCORE_MAX, chroma_check
-from gbscan.decode import OK, UNINDEXED, DecodeParams, decode
+from gbscan.decode import OK, UNINDEXED, DecodeParams, StreamMemo, decode
 from gbscan.errors import GBError
 from gbscan.pattern import PatternSpec, render_pattern
 
@@ -231,6 +231,64 @@ def test_decoder_measures_and_corrects_lateral_chromatic_aberration():
     assert f.level == "warn" and "corrected" in f.text
     with pytest.raises(GBError, match="lateral_ca"):
         DecodeParams(lateral_ca_t=0)
+
+
+
+def _same_maps(a, b) -> bool:
+    return all(np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True)
+               for f in ("column", "stripe", "confidence", "mask", "column_sigma"))
+
+
+def test_a_stream_reuses_the_lens_aberration_and_measures_it_again():
+    """``StreamMemo``: the first frame of a stream measures the lens's aberration (the same result
+    as without a memo, bit for bit); the next ones correct with its fit (here the sphere with the
+    plane's fit: column RMS within 1.5 x of measuring its own, 0 wrong), until every ``every``-th
+    use measures again; another size or rule measures afresh; a frame with nothing to measure (dark)
+    leaves nothing to reuse."""
+    spec = PatternSpec()
+    plane = frame("plane", seed=0, lateral_ca_px=1.0)
+    sphere = frame("sphere", seed=0, lateral_ca_px=1.0)
+
+    def rms_wrong(sm, r):
+        err, bad = sim.column_errors(sm.column, sm.valid, r.proj_xy[..., 0], spec.stripe_px)
+        e = err[sm.valid & ~bad & ~r.depth_edge]
+        return float(np.sqrt(np.mean(e ** 2))), int((bad & ~r.depth_edge & sm.valid).sum())
+
+    memo = StreamMemo(3)
+    first = decode(plane.image, spec, memo=memo)
+    assert first.stats["stream"] == {"lateral_ca": "measured", "resample": "measured"}
+    assert first.stats["lateral_ca"]["corrected"] and _same_maps(first, decode(plane.image, spec))
+    own = decode(sphere.image, spec)
+    second = decode(sphere.image, spec, memo=memo)
+    assert second.stats["stream"] == {"lateral_ca": "reused (measured 1 frame before)",
+                                      "resample": "reused (measured 1 frame before)"}
+    assert second.stats["lateral_ca"] == first.stats["lateral_ca"] != own.stats["lateral_ca"]
+    assert not _same_maps(second, own)
+    (rms_own, w_own), (rms_reused, w_reused) = rms_wrong(own, sphere), rms_wrong(second, sphere)
+    assert w_own == w_reused == 0 and rms_reused < 1.5 * rms_own, (rms_own, rms_reused)
+    assert decode(sphere.image, spec, memo=memo).stats["stream"]["lateral_ca"] == "reused (measured 2 frames before)"
+    again = decode(sphere.image, spec, memo=memo)                       # the 4th frame: every = 3
+    assert again.stats["stream"]["lateral_ca"] == "measured" and _same_maps(again, own)
+    # another rule (or frame size) is another key: measured, then reused
+    p6 = DecodeParams(lateral_ca_t=6.0)
+    assert decode(plane.image, spec, p6, memo=memo).stats["stream"]["lateral_ca"] == "measured"
+    assert decode(plane.image, spec, p6, memo=memo).stats["stream"]["lateral_ca"].startswith("reused")
+    small = np.ascontiguousarray(plane.image[:400])
+    assert decode(small, spec, p6, memo=memo).stats["stream"] == {"lateral_ca": "measured", "resample": "measured"}
+    # a dark first frame keeps nothing; clear() forgets
+    m2 = StreamMemo()
+    dark = decode(np.zeros_like(plane.image), spec, memo=m2)
+    assert dark.stats["stream"] == {"resample": "measured"} and dark.stats["reported"] == 0
+    assert decode(plane.image, spec, memo=m2).stats["stream"]["lateral_ca"] == "measured"
+    m2.clear()
+    assert decode(plane.image, spec, memo=m2).stats["stream"]["lateral_ca"] == "measured"
+    # without a memo nothing is said; bad arguments are named
+    assert "stream" not in own.stats
+    for bad in (0, 1.5, True, "16"):
+        with pytest.raises(GBError, match="StreamMemo: every"):
+            StreamMemo(bad)
+    with pytest.raises(GBError, match="memo must be a gbscan.decode.StreamMemo"):
+        decode(plane.image, spec, memo={})
 
 
 def test_lateral_chromatic_aberration_is_taken_out_before_the_unwrapping(monkeypatch):

@@ -167,6 +167,59 @@ def test_wide_stripes_are_decoded_shrunk(wide):
     assert (resample_value("auto"), resample_value("never"), resample_value("2.5")) == (0.0, 1.0, 2.5)
 
 
+
+def test_a_stream_reuses_the_resampling_factor(wide):
+    """Frames of one stream (``StreamMemo``) measure the stripes' width once: the next frame takes
+    the factor (and the shrunk frame's aberration fit) from the first -- the sphere at its distance
+    would choose 1.75 alone, it takes the multi-object scene's 2 -- and decodes to the same maps
+    bit for bit as with that factor given; a fixed ``resample`` measures nothing."""
+    from gbscan.decode import StreamMemo
+
+    other = render("sphere", 2.0)
+    memo = StreamMemo()
+    a = decode(wide.image, SPEC, memo=memo)
+    b = decode(other.image, SPEC, memo=memo)
+    assert a.stats["stream"] == {"lateral_ca": "measured", "resample": "measured"}
+    assert b.stats["stream"] == {"lateral_ca": "reused (measured 1 frame before)",
+                                 "resample": "reused (measured 1 frame before)"}
+    assert decode(other.image, SPEC).stats["resample"] == 1.75
+    ref = decode(other.image, SPEC, DecodeParams(resample=a.stats["resample"]))
+    assert b.stats["resample"] == a.stats["resample"] == 2.0
+    assert not ref.stats["lateral_ca"]["corrected"] and not a.stats["lateral_ca"]["corrected"]
+    for f in ("column", "stripe", "confidence", "mask"):
+        assert np.array_equal(getattr(b, f), getattr(ref, f), equal_nan=True), f
+    fixed = decode(other.image, SPEC, DecodeParams(resample=2.0), memo=StreamMemo())
+    assert "resample" not in fixed.stats["stream"]
+
+
+
+def test_a_stream_keeps_the_aberration_fit_in_the_full_frames_pixels():
+    """A shrunk decode of a lit window keeps its aberration fit in the full frame's px (the window
+    and the ratio taken out) and reads it back in its own: the blue offset a full pixel x gets is
+    the same whichever window stored and read it (shrunk px: ratio times smaller), and the sphere
+    of a 1280x960 camera whose blue image is 2 px larger at the corners decoded twice through one
+    memo corrects the second time with the first fit, to the same columns within 1e-3 px."""
+    from gbscan.decode import StreamMemo, _ShrunkMemo
+
+    memo = StreamMemo()
+    key = ((10, 20), 5.0, 0.1)
+    _ShrunkMemo(memo, (960, 1280), 2.0, 300, 2.0).put("lateral_ca", key, ({"k": 1}, (0.05, 4e-4)))
+    (_, (a2, k2)), _ = _ShrunkMemo(memo, (960, 1280), 2.0, 100, 1.98).get("lateral_ca", key)
+    for x in (120.0, 700.0, 1200.0):
+        xs1, xs2 = (x - 300 - 0.5) / 2.0, (x - 100 - 0.49) / 1.98
+        assert 1.98 * (a2 + k2 * xs2) == pytest.approx(2.0 * (0.05 + 4e-4 * xs1), abs=1e-12)
+    assert _ShrunkMemo(memo, (960, 1280), 1.75, 0, 1.75).get("lateral_ca", key) == (None, 0)   # another factor
+    cond = dataclasses.replace(sim.preset("typical"), supersample=1, lateral_ca_px=2.0)
+    r = sim.render(study.scaled_rig(2.0), sim.scenes.sphere(), render_pattern(SPEC), cond, seed=0)
+    memo = StreamMemo()
+    a = decode(r.image, SPEC, memo=memo)
+    b = decode(r.image, SPEC, memo=memo)
+    assert a.stats["lateral_ca"]["corrected"] and a.stats["decoded_window"] is not None
+    assert b.stats["stream"]["lateral_ca"].startswith("reused") and a.stats["resample"] == b.stats["resample"]
+    assert np.array_equal(a.valid, b.valid) and scores(b, r)[1] == 0
+    assert float(np.nanmax(np.abs(a.column - b.column))) < 1e-3
+
+
 def test_working_volume_follows_the_shrunk_frame(wide):
     """A working volume (stripe bounds per frame pixel) is carried to the shrunk frame: bounds
     that rule nothing out change nothing; bounds that exclude every stripe drop every region."""

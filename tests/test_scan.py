@@ -119,12 +119,35 @@ def test_scanner_validates_inputs(rig, scanner):
         scanner.reconstruct(np.zeros((10, 10)))
 
 
+
+def test_scanner_measures_the_camera_once_per_stream(rig):
+    """A Scanner's frames are one stream: the second reuses the first's measurements of the camera
+    (``stats['stream']``), every ``remeasure_every``-th measures again (1: every frame), and a
+    bad ``remeasure_every`` is named."""
+    from gbscan import sim
+    from gbscan.pattern import render_pattern
+
+    cal = calibration_from_rig(rig, PatternSpec())
+    import dataclasses
+
+    cond = dataclasses.replace(sim.preset("typical"), supersample=1)
+    img = sim.render(rig, sim.scenes.sphere(), render_pattern(PatternSpec()), cond, seed=0).image
+    sc = Scanner(cal, remeasure_every=2)
+    said = [sc.scan(img).stripemap.stats["stream"]["lateral_ca"] for _ in range(3)]
+    assert said == ["measured", "reused (measured 1 frame before)", "measured"]
+    every = Scanner(cal, remeasure_every=1)
+    assert [every.scan(img).stripemap.stats["stream"]["resample"] for _ in range(2)] == ["measured"] * 2
+    assert Scanner(cal).memo.every == 16
+    with pytest.raises(GBError, match="Scanner: remeasure_every"):
+        Scanner(cal, remeasure_every=0)
+
+
 # -- CLI -----------------------------------------------------------------------------------------
 def fake_decoder(monkeypatch, col):
     """Replace the decoder by the ground truth: the CLI plumbing is tested without its noise."""
     import gbscan.decode as dec
 
-    def decode(image, pattern, params=None, keep_stages=False, stripe_range=None):
+    def decode(image, pattern, params=None, keep_stages=False, stripe_range=None, memo=None):
         ok = np.isfinite(col)
         z = np.zeros(col.shape, np.int32)
         return dec.StripeMap(column=col.astype(np.float32), stripe=np.where(ok, 1, -1).astype(np.int32),
