@@ -2133,6 +2133,7 @@ class _ShrunkMemo(StreamMemo):
     def __init__(self, memo: StreamMemo, shape, factor: float, x0: int, ratio: float):
         self.memo, self.shape, self.factor = memo, tuple(shape), float(factor)
         self.ratio, self.c = float(ratio), float(x0) + 0.5 * (float(ratio) - 1.0)
+        self.every = memo.every
 
     def _key(self, key):
         return ((self.shape, self.factor),) + tuple(key[1:])

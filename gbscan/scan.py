@@ -277,8 +277,9 @@ class Scanner:
         self._rays = None
         try:
             self.memo = StreamMemo(STREAM_REMEASURE_EVERY if remeasure_every is None else remeasure_every)
-        except GBError as e:
-            raise GBError(f"Scanner: remeasure_every: {e}") from None
+        except GBError:
+            raise GBError("Scanner: remeasure_every must be an integer >= 1 (the frames a measurement of the "
+                          f"camera is used on; 1: every frame), got {remeasure_every!r}") from None
 
     @property
     def rays(self) -> np.ndarray:
