@@ -1010,7 +1010,10 @@ class ScannerProcessor(Processor):
     def setup(self):
         from .scan import Scanner
 
-        scanner = Scanner(self.calibration, decode_params=self.decode_params, clean_params=self.clean_params)
+        # every frame measures the camera itself (remeasure_every=1): a frame's outputs must not
+        # depend on which worker scanned it, or after which frame (parallel, resumable runs)
+        scanner = Scanner(self.calibration, decode_params=self.decode_params, clean_params=self.clean_params,
+                          remeasure_every=1)
         temporal = self.temporal
         calls = [0]
 

@@ -566,7 +566,7 @@ def test_cli_folder_of_raw_bayer_frames(tmp_path, calib_file):
     r = _gbscan("batch", frames, "--calib", calib_file, "-o", tmp_path / "out", "--workers", "1", "--bayer", "GBRG",
                 "--quiet")
     assert r.returncode == 0, r.stdout + r.stderr
-    scanner = Scanner(calib_file)
+    scanner = Scanner(calib_file, remeasure_every=1)
     for i, m in enumerate(mosaics):
         np.testing.assert_array_equal(np.load(tmp_path / "out" / f"frame_{i:06d}.xyz.npy"),
                                       scanner.scan(demosaic(m, "GBRG")).xyz)
@@ -627,6 +627,25 @@ def _sphere_sequence(n):
     return out
 
 
+
+def test_batch_frames_measure_the_camera_each(calib_file, monkeypatch):
+    """A batch worker's Scanner measures the camera on every frame (``remeasure_every=1``): a
+    frame's outputs do not depend on which worker scanned it after which frame."""
+    import gbscan.scan as scan_module
+    from gbscan.batch import ScannerProcessor
+
+    seen = {}
+    real = scan_module.Scanner
+
+    class Spy(real):
+        def __init__(self, *a, **kw):
+            seen.update(kw)
+            super().__init__(*a, **kw)
+
+    monkeypatch.setattr(scan_module, "Scanner", Spy)
+    process = ScannerProcessor(calib_file).setup()
+    assert seen["remeasure_every"] == 1 and callable(process)
+
 @pytest.mark.slow
 def test_cli_video_end_to_end_with_scanner(tmp_path, calib_file):
     renders = _sphere_sequence(3)
@@ -639,10 +658,11 @@ def test_cli_video_end_to_end_with_scanner(tmp_path, calib_file):
     from gbscan.mesh import read_cloud_ply, read_mesh
     from gbscan.scan import Scanner
 
-    scanner = Scanner(calib_file)
+    scanner = Scanner(calib_file, remeasure_every=1)
     for i, rend in enumerate(renders):
         xyz = np.load(out / f"frame_{i:06d}.xyz.npy")
-        # The batch result is exactly the one-frame scan of the same (losslessly coded) image.
+        # The batch result is exactly the one-frame scan of the same (losslessly coded) image: each
+        # frame measures the camera itself, whichever worker scanned it after which frame.
         np.testing.assert_array_equal(xyz, scanner.scan(rend.image).xyz)
         ok = np.isfinite(xyz).all(-1)
         assert rows[i]["status"] == "ok" and int(rows[i]["points"]) == ok.sum() > 5000
