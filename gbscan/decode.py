@@ -2072,8 +2072,9 @@ STREAM_REMEASURE_EVERY = 16
 
 class StreamMemo:
     """What :func:`decode` measures on a frame that belongs to the camera rather than the scene,
-    kept for the next frames of one stream (one camera, one lens setting: a video, a live view,
-    ``gbscan batch``; :class:`gbscan.scan.Scanner` keeps one):
+    kept for the next frames of one stream (one camera, one lens setting: a video, a live view;
+    :class:`gbscan.scan.Scanner` keeps one; ``gbscan batch`` does not use one, so that a frame's
+    outputs do not depend on the frame its worker scanned before):
 
     * the resampling factor and the frame's camera px per stripe (:func:`choose_resample`:
       the stripes' width in the camera, set by the lens and the working distance), ~0.15-0.2 ms

@@ -25,7 +25,7 @@ result, or for a frame decoded shrunk a grid starting at the window's corner); t
 also times the whole frame (``--decode-param crop=false``).
 
 For the default decode also the mean per frame of a stream (:class:`gbscan.decode.StreamMemo`,
-as a Scanner, ``gbscan batch`` and the live scan decode: the camera's resampling factor and lens
+as a Scanner and the live scan decode: the camera's resampling factor and lens
 aberration measured every 16th frame and reused between), alternating with single frames.
 
 Also printed: CPU milliseconds of the calling thread (less sensitive than wall time to other
