@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gbscan.io import atomic_path, make_dir, write_png, write_text_atomic
+from gbscan.io import make_dir, write_figure_png, write_png, write_text_atomic
 
 
 def load_samples(calib_path, calib) -> tuple[dict | None, str]:
@@ -42,8 +42,7 @@ def load_samples(calib_path, calib) -> tuple[dict | None, str]:
 def _savefig(fig, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
+    write_figure_png(path, fig, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
 

@@ -362,6 +362,14 @@ def write_png(path, image: np.ndarray) -> Path:
     return Path(path)
 
 
+def write_figure_png(path, fig, **savefig_kw) -> Path:
+    """Write a matplotlib figure as PNG, atomically (``savefig_kw``: matplotlib's ``savefig``
+    options, e.g. ``dpi``, ``bbox_inches``).  The figure stays open: the caller closes it."""
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, format="png", **savefig_kw)
+    return Path(path)
+
+
 # -- capture sessions --------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Session:

@@ -34,6 +34,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment's install points at
     sys.path.insert(0, str(ROOT))
+if str(ROOT / "scripts") not in sys.path:  # bench_decode's stream timing (run as a script: already there)
+    sys.path.insert(0, str(ROOT / "scripts"))
 
 
 def rig_of_size(width: int, height: int):
@@ -104,7 +106,6 @@ def bench_size(width: int, height: int, scene: str, repeats: int, workdir: Path,
     # frames of one stream, as a Scanner decodes them (gbscan.decode.StreamMemo: the camera's
     # measurements made every 16th frame): means over whole cycles, alternating with single frames
     # (bench_decode.stream_ms); the stream's figure is the single frame's median times their ratio
-    sys.path.insert(0, str(ROOT / "scripts"))
     from bench_decode import stream_ms
 
     one, stream = stream_ms(r.image, spec, params, 2 * repeats)

@@ -273,7 +273,7 @@ def picture(path: Path, image: np.ndarray, good, kept, facing, mask) -> Path:
     from matplotlib.patches import Patch
 
     from gbscan.decode import REASONS
-    from gbscan.io import atomic_path
+    from gbscan.io import write_figure_png
     from gbscan.preview.decode import REASON_RGB
 
     rgb = (image * 0.25).astype(np.float64)
@@ -300,9 +300,7 @@ def picture(path: Path, image: np.ndarray, good, kept, facing, mask) -> Path:
                                  label=f"{'cleaned' if code == 0 else REASONS[code]} ({n})"))
     ax.legend(handles=handles, loc="lower right", fontsize=7, framealpha=0.8)
     ax.set_title(f"lost lit non-edge pixels by reason (darker: beyond {GRAZING_DEG:.0f} deg incidence)", fontsize=9)
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", bbox_inches="tight")
+    path = write_figure_png(path, fig, bbox_inches="tight")
     plt.close(fig)
     return path
 

@@ -59,7 +59,7 @@ def picture(path: Path, image: np.ndarray, cand: np.ndarray, matte_ok: np.ndarra
     from matplotlib.patches import Patch
 
     from gbscan.decode import REASONS
-    from gbscan.io import atomic_path
+    from gbscan.io import write_figure_png
     from gbscan.preview.decode import REASON_RGB
 
     own = {"dark": (60, 110, 255), "low_contrast": (210, 210, 120), "saturated": (255, 255, 255)}
@@ -86,10 +86,8 @@ def picture(path: Path, image: np.ndarray, cand: np.ndarray, matte_ok: np.ndarra
     for ax in axes:
         ax.set_axis_off()
     fig.suptitle(title, fontsize=10)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", bbox_inches="tight")
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    path = write_figure_png(path, fig, bbox_inches="tight")
     plt.close(fig)
     return path
 

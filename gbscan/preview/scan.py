@@ -13,7 +13,7 @@ import numpy as np
 
 from ..clean import REASONS
 from ..errors import GBError
-from ..io import atomic_path, write_png
+from ..io import write_figure_png, write_png
 
 #: RGB colour of each cleaning reason in the coverage picture.
 REASON_RGB = {
@@ -188,8 +188,7 @@ def _save_map_picture(path, values: np.ndarray, cmap_name: str, vmin: float, vma
 def _save_figure(fig, path) -> None:
     """Lay out and write a matplotlib figure as PNG, atomically."""
     fig.tight_layout()
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, format="png")
+    write_figure_png(path, fig)
 
 def save_coverage_picture(path, reason: np.ndarray) -> Path:
     """Pixels coloured by why they have (green) or have no point, with a legend of counts."""
