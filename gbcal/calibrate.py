@@ -68,9 +68,9 @@ def pattern_of_session(session: Session) -> PatternSpec:
     if isinstance(d, dict):
         try:
             spec = PatternSpec.from_dict(d)
-        except (KeyError, TypeError, ValueError) as e:
-            raise GBError(f"session {session.root}: 'pattern' must be {{width, height, stripe_px, markers}} ({e})") \
-                from None
+        except (KeyError, TypeError, ValueError, GBError) as e:
+            raise GBError(f"session {session.root}: 'pattern' must be {{width, height, stripe_px, markers[, "
+                          f"marker_code]}} ({e})") from None
     else:
         spec = PatternSpec(*session.projector_size)
     if (spec.width, spec.height) != tuple(session.projector_size):

@@ -11,7 +11,9 @@ YAML, versioned and checked strictly on load.  Fixed fields (other tools read th
          column: float,          # projector x (px) of this light plane, k*stripe_px - 0.5
          normal: [nx,ny,nz], d: float}   # unit normal; normal . X = d, camera frame, mm
 
-Added fields: ``pattern`` (the projected pattern the planes belong to), ``projector`` (the
+Added fields: ``pattern`` (the projected pattern the planes belong to: ``{width, height,
+stripe_px, markers, marker_code}``; without ``marker_code``, a file written before 2026-11-28,
+marker code 1: :mod:`gbscan.pattern`), ``projector`` (the
 pinhole projector model and ``T_cam_proj`` the planes were refined through, when known),
 ``created`` (command, date, tool version), ``residuals`` (statistics per capture and overall),
 ``uncertainty`` (parameter standard deviations).  ``gbscan`` triangulates from ``camera`` and
@@ -200,8 +202,8 @@ def load_calibration(path, *, require_planes: bool = True) -> Calibration:
     if "pattern" in d:
         try:
             pattern = PatternSpec.from_dict(d["pattern"])
-        except (KeyError, TypeError, ValueError) as e:
-            bad("pattern", f"must be {{width, height, stripe_px, markers}} ({e})")
+        except (KeyError, TypeError, ValueError, GBError) as e:
+            bad("pattern", f"must be {{width, height, stripe_px, markers[, marker_code]}} ({e})")
     return Calibration(
         camera,
         np.array(idx, dtype=np.int64),

@@ -48,27 +48,40 @@ def add_bayer_argument(p) -> None:
                         "OpenCV; default: full RGB per pixel, like the paper's 3-CCD camera")
 
 
-#: the simulated paper rig's default camera-projector baseline and camera (``gbscan.rig.paper_rig``)
+#: the simulated paper rig's default camera-projector baseline, camera and projector
+#: (``gbscan.rig.paper_rig``)
 DEFAULT_BASELINE_MM = 200.0
 DEFAULT_CAMERA_PX = (640, 480)
+DEFAULT_PROJECTOR_PX = (1024, 768)
 
 
 def camera_size(text: str) -> tuple[int, int]:
     """``--camera WxH``: a camera size in pixels (:func:`size_arg`) that
     :func:`gbscan.rig.paper_rig` builds (``CAMERA_SIDE_PX``)."""
+    return _rig_size(text, "camera")
+
+
+def projector_size(text: str) -> tuple[int, int]:
+    """``--projector WxH`` of the simulators: a projector size in pixels that
+    :func:`gbscan.rig.paper_rig` builds (``CAMERA_SIDE_PX``)."""
+    return _rig_size(text, "projector")
+
+
+def _rig_size(text: str, what: str) -> tuple[int, int]:
     from .rig import CAMERA_SIDE_PX
 
     w, h = size_arg(text)
     lo, hi = CAMERA_SIDE_PX
     if not (lo <= w <= hi and lo <= h <= hi):
-        raise argparse.ArgumentTypeError(f"camera size must be {lo}-{hi} pixels a side, got {text!r}")
+        raise argparse.ArgumentTypeError(f"{what} size must be {lo}-{hi} pixels a side, got {text!r}")
     return w, h
 
 
 def add_rig_arguments(p) -> None:
-    """``--baseline-mm B`` and ``--camera WxH`` of the simulators and the study scripts: the simulated
-    paper rig with its projector ``B`` mm right of the camera (still toed in to 650 mm) and a camera
-    of W x H pixels behind the same lens; see :func:`rig_from_args`."""
+    """``--baseline-mm B``, ``--camera WxH`` and ``--projector WxH`` of the simulators and the study
+    scripts: the simulated paper rig with its projector ``B`` mm right of the camera (still toed in
+    to 650 mm), a camera and a projector of W x H pixels behind the paper's lenses; see
+    :func:`rig_from_args`."""
     p.add_argument("--baseline-mm", type=float, default=DEFAULT_BASELINE_MM,
                    help="camera-projector baseline of the simulated rig in mm (default 200; the projector stays "
                         "toed in to 650 mm): less baseline, less grazing light and shadow, more depth noise.  "
@@ -78,26 +91,34 @@ def add_rig_arguments(p) -> None:
                    help="camera pixels behind the paper camera's lens (default 640x480; e.g. 1280x960: twice the "
                         "pixels over the same field of view, stripes twice as wide in the image, which the "
                         "decoder shrinks back: --resample)")
+    p.add_argument("--projector", type=projector_size, default=DEFAULT_PROJECTOR_PX, metavar="WxH",
+                   help="projector pixels behind the paper projector's lens (default 1024x768; e.g. 1920x1080: "
+                        "stripes of the same width in projector px 1.9 times narrower in the image -- pair it "
+                        "with --camera 1280x1024 -- and 240 stripes of 8 px, see the marker code in "
+                        "docs/method.md)")
 
 
 def rig_from_args(args):
-    """The simulated paper rig of ``--baseline-mm`` and ``--camera`` (:func:`add_rig_arguments`);
-    GBError naming the option for a baseline that is not a positive length."""
+    """The simulated paper rig of ``--baseline-mm``, ``--camera`` and ``--projector``
+    (:func:`add_rig_arguments`); GBError naming the option for a baseline that is not a positive
+    length."""
     from .errors import GBError
     from .rig import paper_rig
 
     b = args.baseline_mm
     if not (b > 0 and b < float("inf")):
         raise GBError(f"--baseline-mm must be a positive length in mm (the projector right of the camera), got {b}")
-    return paper_rig(baseline_mm=b, camera_px=tuple(args.camera))
+    return paper_rig(baseline_mm=b, camera_px=tuple(args.camera), projector_px=tuple(args.projector))
 
 
 def rig_label(args) -> str:
-    """", baseline B mm, camera WxH" for a rig other than the default one (progress lines,
-    headers), else ""."""
+    """", baseline B mm, camera WxH, projector WxH" for a rig other than the default one (progress
+    lines, headers), else ""."""
     out = "" if args.baseline_mm == DEFAULT_BASELINE_MM else f", baseline {args.baseline_mm:g} mm"
     cam = tuple(args.camera)
-    return out + ("" if cam == DEFAULT_CAMERA_PX else f", camera {cam[0]}x{cam[1]}")
+    out += "" if cam == DEFAULT_CAMERA_PX else f", camera {cam[0]}x{cam[1]}"
+    proj = tuple(args.projector)
+    return out + ("" if proj == DEFAULT_PROJECTOR_PX else f", projector {proj[0]}x{proj[1]}")
 
 
 def add_capture_arguments(p) -> None:

@@ -126,12 +126,12 @@ def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)) -> np.ndar
     return np.stack([x, y, z], axis=1)
 
 
-#: the camera sizes :func:`paper_rig` builds (pixels a side, inclusive)
+#: the camera (and projector) sizes :func:`paper_rig` builds (pixels a side, inclusive)
 CAMERA_SIDE_PX = (64, 16384)
 
 
 def paper_rig(baseline_mm: float = 200.0, distance_mm: float = 650.0, *, distortion=True,
-              camera_px: tuple[int, int] = (640, 480)) -> Rig:
+              camera_px: tuple[int, int] = (640, 480), projector_px: tuple[int, int] = (1024, 768)) -> Rig:
     """The paper's geometry: a 640x480 camera and a 1024x768 DLP projector.
 
     The camera (fx = fy = 800 px) sits at the origin; the projector (fx = fy = 1860 px, so one
@@ -143,6 +143,11 @@ def paper_rig(baseline_mm: float = 200.0, distance_mm: float = 650.0, *, distort
     pitch scaled by 640 / W: fx = fy = 800 W / 640, the principal point at the centre, the same
     distortion), e.g. (1280, 960) for twice the paper camera's pixels over its field of view;
     stripes then span W / 640 times as many camera pixels.
+    ``projector_px`` (W, H): a projector of that many pixels behind the paper projector's lens (fx
+    = fy = 1860 W / 1024, the principal point at the centre), e.g. (1920, 1080), today's common
+    projector: stripes of a given width in projector px are then 1024 / W times as wide in the
+    camera (pair it with a larger camera or wider stripes), and a pattern of 8-px stripes has 240
+    of them (see :mod:`gbscan.pattern`, the marker code).
     """
     if not (np.isfinite(baseline_mm) and baseline_mm > 0 and np.isfinite(distance_mm) and distance_mm > 0):
         raise GBError(f"paper_rig: baseline_mm and distance_mm must be positive lengths in mm (the projector right "
@@ -154,6 +159,12 @@ def paper_rig(baseline_mm: float = 200.0, distance_mm: float = 650.0, *, distort
     lo, hi = CAMERA_SIDE_PX
     if not (lo <= W <= hi and lo <= H <= hi) or (W, H) != tuple(camera_px):
         raise GBError(f"paper_rig: camera_px must be whole numbers of pixels in [{lo}, {hi}], got {camera_px!r}")
+    try:
+        PW, PH = (int(x) for x in projector_px)
+    except (TypeError, ValueError):
+        raise GBError(f"paper_rig: projector_px must be (width, height) in pixels, got {projector_px!r}") from None
+    if not (lo <= PW <= hi and lo <= PH <= hi) or (PW, PH) != tuple(projector_px):
+        raise GBError(f"paper_rig: projector_px must be whole numbers of pixels in [{lo}, {hi}], got {projector_px!r}")
     f = 800.0 * W / 640.0
     cam = Camera(
         W,
@@ -161,7 +172,8 @@ def paper_rig(baseline_mm: float = 200.0, distance_mm: float = 650.0, *, distort
         np.array([[f, 0.0, (W - 1) / 2.0], [0.0, f, (H - 1) / 2.0], [0.0, 0.0, 1.0]]),
         np.array([-0.12, 0.09, 0.0005, -0.0003, 0.0]) if distortion else np.zeros(5),
     )
-    proj = Projector(1024, 768, np.array([[1860.0, 0.0, 511.5], [0.0, 1860.0, 383.5], [0.0, 0.0, 1.0]]))
+    fp = 1860.0 * PW / 1024.0
+    proj = Projector(PW, PH, np.array([[fp, 0.0, (PW - 1) / 2.0], [0.0, fp, (PH - 1) / 2.0], [0.0, 0.0, 1.0]]))
     eye = np.array([baseline_mm, 0.0, 0.0])
     R = look_at(eye, np.array([0.0, 0.0, distance_mm]))
     return Rig(cam, proj, R, eye)

@@ -21,6 +21,11 @@ and prints, over the lit non-edge pixels (the accuracy targets' denominator):
 and the decoder's working volume.  ``--decode-param NAME=VALUE`` scans with a decoder parameter off its default (compare a change:
 run once with and once without); ``--yaw-deg`` turns the head / the real face (``fran_face``).
 
+``--projector 1920x1080`` (with ``--camera 1280x1024``: stripes about as wide in the camera as
+the paper rig's) scans through a projector of that many pixels behind the paper projector's
+lens, 240 stripes of 8 px; ``--marker-code 1`` projects and decodes the marker sequence used
+before 2026-11-28, periodic beyond 167 stripes (:mod:`gbscan.pattern`).
+
 ``--bayer RGGB`` renders through a colour filter mosaic and OpenCV's demosaicing (most colour
 cameras) instead of full RGB per pixel (the paper's 3-CCD camera); ``--jpeg QUALITY
 [--jpeg-sampling 4:2:0]`` stores the frames as JPEG (webcams, most "photo" modes); ``--ambient
@@ -63,15 +68,16 @@ BINS_DEG = (0, 40, 60, 70, 75, 80, 90)
 def study(name: str, seed: int, preset: str, out: Path | None, bayer: str = "", decode_params=None,
           yaw_deg: float | None = None, depth_range=None, conditions: dict | None = None,
           baseline_mm: float = 200.0, camera_px: tuple[int, int] = (640, 480), edge_profile: bool = False,
-          confidence: bool = False, sigma: bool = False) -> dict:
+          confidence: bool = False, sigma: bool = False, projector_px: tuple[int, int] = (1024, 768),
+          marker_code: int = 2) -> dict:
     from gbscan import sim
     from gbscan.calibfile import calibration_from_rig
     from gbscan.decode import REASONS
     from gbscan.pattern import PatternSpec, render_pattern
     from gbscan.scan import Scanner
 
-    rig = sim.paper_rig(baseline_mm=baseline_mm, camera_px=camera_px)
-    spec = PatternSpec()
+    rig = sim.paper_rig(baseline_mm=baseline_mm, camera_px=camera_px, projector_px=projector_px)
+    spec = PatternSpec(rig.projector.width, rig.projector.height, marker_code=marker_code)
     import dataclasses
 
     print(f"rendering {name} (seed {seed}, {preset}{', ' + bayer if bayer else ''}) ...", file=sys.stderr, flush=True)
@@ -312,6 +318,8 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="typical", choices=("clean", "typical", "hard"))
     ap.add_argument("--out", help="folder for the coverage pictures (created)")
     ap.add_argument("--yaw-deg", type=float, help="turn the scenes that take a yaw (head, fran_face) by this much")
+    ap.add_argument("--marker-code", type=int, choices=(1, 2), default=2,
+                    help="the pattern's marker sequence (gbscan.pattern; default 2; 1: the one before 2026-11-28)")
     ap.add_argument("--depth-range", type=float, nargs=2, metavar=("MIN_MM", "MAX_MM"),
                     help="scan with this depth range, as gbscan scan --depth-range (cleaning and the decoder's "
                          "working volume)")
@@ -371,14 +379,17 @@ def main(argv=None) -> int:
         conditions = {**capture_fields(args), **ambient_fields(args)}
     except GBError as e:
         ap.error(str(e))
-    print(f"# coverage study, paper rig (baseline {args.baseline_mm:g} mm, camera {args.camera[0]}x{args.camera[1]}), "
+    print(f"# coverage study, paper rig (baseline {args.baseline_mm:g} mm, camera {args.camera[0]}x{args.camera[1]}, "
+          f"projector {args.projector[0]}x{args.projector[1]}"
+          f"{', marker code 1' if args.marker_code == 1 else ''}), "
           f"preset {args.preset}{', Bayer ' + args.bayer if args.bayer else ''}"
           f"{capture_label(args)}{ambient_label(args)}{yaw}, "
           f"{dec}, default cleaning")
     for name in names:
         for seed in seeds:
             res = study(name, seed, args.preset, out, args.bayer, decode_params, args.yaw_deg, args.depth_range,
-                        conditions, args.baseline_mm, args.camera, args.edge_profile, args.confidence, args.sigma)
+                        conditions, args.baseline_mm, args.camera, args.edge_profile, args.confidence, args.sigma,
+                        tuple(args.projector), args.marker_code)
             if "picture" in res:
                 print(f"   wrote {res['picture']}")
     return 0

@@ -52,7 +52,9 @@ error or Ctrl-C after some captures leaves SESSION.incomplete/ with INCOMPLETE.t
 
 --simulate drives the very same flow with a simulated camera that renders the board at a scripted
 sequence of poses under whatever frame the simulated projector shows; --sim-faults spoils chosen
-capture attempts (move, blur, bright, dim, lag) to show the rejections.
+capture attempts (move, blur, bright, dim, lag) to show the rejections.  The simulated rig is the
+paper's, with a projector of --projector's pixels behind its lens (e.g. --projector 1920x1080
+--sim-scale 2: stripes about as wide in the 1280x960 camera as the paper rig's).
 """
 from __future__ import annotations
 
@@ -155,9 +157,8 @@ def _run(args, devices) -> int:
         from gbcal.guidedsim import SimulatedRig, parse_faults, script_for
         from gbscan.rig import Rig, paper_rig
 
-        true = paper_rig()
-        if (spec.width, spec.height) != (true.projector.width, true.projector.height):
-            raise GBError("--simulate uses the paper rig's 1024x768 projector; drop --projector")
+        # the paper rig, with a projector of --projector's pixels behind its lens
+        true = paper_rig(projector_px=(spec.width, spec.height))
         rig = Rig(true.camera.scaled(args.sim_scale), true.projector, true.R_cam_proj, true.t_cam_proj)
         steps = script_for(args.poses, parse_faults(args.sim_faults, args.poses))
         # spare poses: the simulated operator tries another position after an unexpected rejection

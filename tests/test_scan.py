@@ -779,14 +779,16 @@ def test_coverage_study_script_options(capsys):
     for argv, msg in ((["--scenes", "sphere", "--yaw-deg", "10"], "takes no yaw"),
                       (["--scenes", "sphere", "--decode-param", "bogus=1"], "--decode-param"),
                       (["--scenes", "sphere", "--decode-param", "extrapolate_fit=2"], "extrapolate_fit"),
-                      (["--scenes", "sphere", "--baseline-mm", "0"], "--baseline-mm")):
+                      (["--scenes", "sphere", "--baseline-mm", "0"], "--baseline-mm"),
+                      (["--scenes", "sphere", "--projector", "40x30"], "--projector"),
+                      (["--scenes", "sphere", "--marker-code", "3"], "--marker-code")):
         with pytest.raises(SystemExit) as e:
             mod.main(argv)
         assert e.value.code == 2 and msg in capsys.readouterr().err
     assert mod.main(["--scenes", "plane", "--decode-param", "extrapolate_fit=0", "--baseline-mm", "150",
                      "--edge-profile", "--confidence", "--sigma"]) == 0
     out = capsys.readouterr().out
-    assert "decoder extrapolate_fit=0" in out and "## plane, seed 0: kept" in out and "(baseline 150 mm, camera 640x480)" in out
+    assert "decoder extrapolate_fit=0" in out and "## plane, seed 0: kept" in out and "(baseline 150 mm, camera 640x480, projector 1024x768)" in out
     # the edge profile: a plane's interior columns are within a tenth of a camera px
     line = next(x for x in out.splitlines() if "column error near the reported area's edges" in x)
     mean, rms = (float(t) for t in line.split("5+ px from any: ")[1].split(" (")[0].split(" / "))

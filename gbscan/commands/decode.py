@@ -7,7 +7,7 @@ code; `reasons` lists the names), `relative`/`region`/`labels` (the unwrapping),
 parameters and statistics as JSON.  --preview DIR writes one PNG per decoder stage.
 
 The pattern must be the one projected: take it from the calibration file (--calib) or give
---stripe-px/--no-markers/--projector as used with 'gbscan pattern'.
+--stripe-px/--no-markers/--projector/--marker-code as used with 'gbscan pattern'.
 """
 from __future__ import annotations
 
@@ -29,14 +29,26 @@ def add_arguments(p):
 
 
 def add_pattern_arguments(p) -> None:
-    """The projected pattern when no --calib gives it: --stripe-px, --no-markers, --projector
-    (read back with :func:`pattern_from_args`)."""
+    """The projected pattern when no --calib gives it: --stripe-px, --no-markers, --projector,
+    --marker-code (read back with :func:`pattern_from_args`)."""
     from ..cli_common import size_arg
 
     p.add_argument("--stripe-px", type=int, default=8, help="stripe width in projector px (default 8)")
     p.add_argument("--no-markers", action="store_true", help="the pure green/blue pattern (relative index only)")
     p.add_argument("--projector", type=size_arg, default=(1024, 768), metavar="WxH",
                    help="projector resolution (default 1024x768)")
+    add_marker_code_argument(p)
+
+
+def add_marker_code_argument(p) -> None:
+    """``--marker-code {1,2}``: the marker sequence of a pattern of more than 167 stripes
+    (:mod:`gbscan.pattern`); 1 for a pattern written before 2026-11-28."""
+    from ..pattern import MARKER_CODE, MARKER_CODES
+
+    p.add_argument("--marker-code", type=int, choices=MARKER_CODES, default=MARKER_CODE,
+                   help=f"the markers' sequence (default {MARKER_CODE}); 1: a pattern of more than 167 stripes (e.g. "
+                        "1920 px at 8 px a stripe) written before 2026-11-28 -- narrower patterns are the same "
+                        "under both")
 
 
 def pattern_from_args(args, cal=None):
@@ -49,7 +61,8 @@ def pattern_from_args(args, cal=None):
         if cal.pattern is None:
             raise GBError(f"--calib {args.calib} records no pattern; give --stripe-px/--no-markers instead")
         return cal.pattern
-    return PatternSpec(args.projector[0], args.projector[1], args.stripe_px, not args.no_markers)
+    return PatternSpec(args.projector[0], args.projector[1], args.stripe_px, not args.no_markers,
+                       marker_code=args.marker_code)
 
 
 # -- the decoder's flags: one set for every command that decodes (decode, scan, batch) ----------
