@@ -264,6 +264,26 @@ class DecodeParams:
         points fewer, depth RMS 0.001-0.003 mm lower, the head's worst point (seed 1) 2.27 -> 1.98
         mm.  Both pixels within ``rim_end_px`` (the rule as for pixels without signal) cost the
         sweep 0.53 points and the real face's renders 0.8-1.7.
+    rim_end_overflow : the end rule (``rim_end_px``) also masks the last pixel of a row's stretch
+        when its colour run goes on for 2 px or more past the columns' reach, in the same region
+        (striped, no column yet, so later "no_boundary"): the run is wider than the stripe its
+        end was extrapolated over, which is what two surfaces' stripes of one colour look like
+        where they meet across a silhouette -- the stretch's last pixel then sits on the other
+        surface with this one's column.  Found on the multi-object scene at 700 mm (seeds 0, 1):
+        a pixel of a box 92 mm in front of the wall took the wall's column, and the scan kept it
+        (its point lies on the wall's plane: nothing in the cloud shows it).  Measured
+        (twenty-fifth session; off / on): ``scripts/sweep_decode.py`` 48 scenes 83.96 -> 83.86 %
+        reported, wrong on depth edges 62 -> 49, off them 0 -> 0, reported columns over 1 px off
+        1073 -> 619; room light 91.99 -> 91.87 %, 19 -> 19, 839 -> 377; clean preset 90.10 ->
+        90.01 %, 49 -> 35; baselines 85.54 -> 85.43 %, 86 -> 84; the blur grid 1 / 1.5 / 2 / 2.5 /
+        3 px on depth edges 62 / 17 / 26 / 39 / 40 -> 49 / 7 / 12 / 24 / 22 at 0.08-0.12 points
+        fewer reported.  Scans (``scripts/coverage_study.py``, seeds 0-2, kept % / depth RMS mm /
+        worst mm): sphere 91.9-92.5 -> 91.7-92.2 / 0.086-0.092 -> 0.082-0.088 / 1.31-1.44 ->
+        0.90-1.28; head 84.6-86.5 -> 84.1-85.9 / 0.170-0.186 -> 0.163-0.176 / 1.98-2.39 ->
+        1.55-1.90; real face 80.7-81.7 -> 80.4-81.4 / 0.179-0.185 -> 0.176-0.182 / 1.77-2.34 ->
+        1.53-2.34; multi-object within 0.1 points, worst unchanged.  Masking every stretch end
+        next to such a pixel (1 px of overflow enough) cost the sweep 0.27-0.30 points and the
+        scans 0.3-1.0.
     rim_guard_px : reported pixels at most this many rows above or below a striped pixel the
         decoder could not index (unindexed, isolated) are masked "rim" (0: never; None, the
         default: the blur's sigma rounded, at least 1 -- :func:`guard_rows`).  At a horizontal
@@ -504,6 +524,7 @@ class DecodeParams:
     rim_bias_px: float = 0.7
     rim_end_px: int = 2
     rim_end_isolated: bool = True
+    rim_end_overflow: bool = True
     rim_guard_px: int | None = None
     rim_end_rows: int | None = None
     rim_end_dim_ratio: float = 0.7
@@ -1416,7 +1437,7 @@ def correct_locking(j_x: np.ndarray, segs, half: int, bins: int, min_count: int)
 
 
 def rim_rule(column_rel: np.ndarray, region: np.ndarray, reg_off_px: np.ndarray, reason: np.ndarray,
-             params: DecodeParams, pull_out: np.ndarray | None = None) -> int:
+             params: DecodeParams, pull_out: np.ndarray | None = None, labels: np.ndarray | None = None) -> int:
     """Mask ``RIM`` the columns that silhouettes and bends make unreliable; returns their count.
 
     column_rel : (H, W) float32 relative projector columns (px, NaN none); region : (H, W) int32;
@@ -1441,7 +1462,9 @@ def rim_rule(column_rel: np.ndarray, region: np.ndarray, reg_off_px: np.ndarray,
       image's left or right side: left/right silhouettes and shadow edges, where the local
       min/max windows mix in the background, and the frame's sides, which cut them; with
       ``rim_end_isolated`` also a stretch's last pixel whose next pixel is striped but in no
-      region (a fragment of another surface beyond a silhouette).
+      region (a fragment of another surface beyond a silhouette), with ``rim_end_overflow`` one
+      whose colour run goes on for 2 px or more without a column (``labels``, the classifier's
+      (H, W) colours; the rule is off without them).
     """
     from . import kernels
 
@@ -1454,7 +1477,9 @@ def rim_rule(column_rel: np.ndarray, region: np.ndarray, reg_off_px: np.ndarray,
     return int(kernels.rim_mask(np.ascontiguousarray(column_rel, dtype=np.float32),
                                 np.ascontiguousarray(region, dtype=np.int32),
                                 np.ascontiguousarray(reg_off_px, dtype=np.float32), reason, half, pull,
-                                int(params.rim_end_px), RIM, pull_out, bool(params.rim_end_isolated)))
+                                int(params.rim_end_px), RIM, pull_out, bool(params.rim_end_isolated),
+                                bool(params.rim_end_overflow) and labels is not None,
+                                np.zeros((0, 0), np.uint8) if labels is None else np.ascontiguousarray(labels)))
 
 
 def _rows_or_sigma(rows: int | None, params: DecodeParams) -> int:
@@ -1694,7 +1719,8 @@ def _mark_spans(reason: np.ndarray, spans: np.ndarray, code: int) -> None:
         row[row == OK] = code
 
 
-def _rim_rule_rows(column_rel, region, reg_off_px, reason, done, changed_rows, params: DecodeParams) -> np.ndarray:
+def _rim_rule_rows(column_rel, region, reg_off_px, reason, done, changed_rows, params: DecodeParams,
+                   labels=None) -> np.ndarray:
     """:func:`rim_rule` on ``reason`` where its result ``done`` for other inputs is known: the rule
     at row ``v`` reads rows ``v - h .. v + h`` only (``h`` its half window), so ``done`` (updated
     in place and returned) is recomputed on the rows within ``h`` of ``changed_rows`` (sorted,
@@ -1708,7 +1734,8 @@ def _rim_rule_rows(column_rel, region, reg_off_px, reason, done, changed_rows, p
     for a, b in zip(first.tolist(), last.tolist()):
         lo, hi = max(a - h, 0), min(b + h, H - 1) + 1
         band = reason[lo:hi].copy()
-        rim_rule(column_rel[lo:hi], region[lo:hi], reg_off_px, band, params)
+        rim_rule(column_rel[lo:hi], region[lo:hi], reg_off_px, band, params,
+                 labels=None if labels is None else labels[lo:hi])
         done[a:b + 1] = band[a - lo:b + 1 - lo]
     return done
 
@@ -1736,7 +1763,7 @@ def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: Patt
     def reported():
         reason = cls.reason.copy()
         if params.rim_bias_px > 0 or params.rim_end_px > 0:
-            rim_rule(column_rel, un.region, reg_off, reason, params)
+            rim_rule(column_rel, un.region, reg_off, reason, params, labels=cls.labels)
             if memo is not None:
                 memo["reason"] = reason  # the decoder reuses it (recomputed only near linked rows)
         return kernels.reported_columns(un.region, reason, un.inconsistent, cls.labels, column_rel, reg_off)
@@ -2469,7 +2496,7 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
                 # the votes' rim rule, again only on the rows whose window saw a linked segment
                 reg_off = np.where(idx.indexed, idx.offset * pattern.stripe_px, np.nan).astype(np.float32)
                 rim_done = _rim_rule_rows(column_rel, un.region, reg_off, cls.reason, memo["reason"],
-                                          memo["changed_rows"], params)
+                                          memo["changed_rows"], params, labels=cls.labels)
         elif _REUSE_LINK_WORK:
             # nothing linked: the rim rule the votes ran on a copy is the final one (same inputs)
             rim_done = memo.get("reason")
@@ -2479,7 +2506,7 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
         np.copyto(cls.reason, rim_done)
     elif params.rim_bias_px > 0 or params.rim_end_px > 0:
         reg_off = np.where(idx.indexed, idx.offset * pattern.stripe_px, np.nan).astype(np.float32)
-        rim_rule(column_rel, un.region, reg_off, cls.reason, params)
+        rim_rule(column_rel, un.region, reg_off, cls.reason, params, labels=cls.labels)
     if late_spans is not None:
         _mark_spans(cls.reason, late_spans, UNINDEXED)
     joined = _NO_SOURCES

@@ -1008,7 +1008,7 @@ def _abs_row_reference(column_rel, region, reg_off, v, out, weight):
 
 @njit(nogil=True)
 def _rim_mask_reference(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, rim_code, pull_out,
-                        end_isolated=False):
+                        end_isolated, end_overflow, labels):
     """``kernels.rim_mask`` as it was (per-pixel branches, in-place rows): the reference."""
     H, W = column_rel.shape
     want = pull_out.shape[0] == H and pull_out.shape[1] == W
@@ -1068,6 +1068,15 @@ def _rim_mask_reference(column_rel, region, reg_off, reason, half_px, max_pull_p
                             near_dark = True
                         if end_isolated and abs(x - u) == 1 and cx == 0 and region[v, x] < 0:
                             near_dark = True    # a striped pixel no region holds, next to it
+                        x2 = 2 * x - u
+                        if end_overflow and abs(x - u) == 1 and 0 <= x2 < W:
+                            over = True         # its colour run goes on 2 px past the columns
+                            for y in (x, x2):
+                                if not (reason[v, y] == 0 and region[v, y] >= 0 and column_rel[v, y] != column_rel[v, y]
+                                        and labels[v, y] == labels[v, u]):
+                                    over = False
+                            if over:
+                                near_dark = True
                         if column_rel[v, x] != column_rel[v, x]:
                             at_end = True
                     rim = at_end and near_dark
@@ -1099,19 +1108,19 @@ def test_rim_mask_equals_its_per_pixel_form(name, monkeypatch):
     assert calls, "the decoder must call the rim rule"
     n_masked = 0
     for args in calls:
-        col, reg, off, reason, half, pull, end, code, _, iso = args
-        assert iso is True                              # the decoder's default
+        col, reg, off, reason, half, pull, end, code, _, iso, over, labels = args
+        assert iso is True and over is True and labels.shape == reason.shape   # the decoder's defaults
         H, W = reason.shape
         for half2, pull2, end2, code2, want in ((half, pull, end, code, False), (half, pull, end, code, True),
                                                 (half, 0.0, end, code, False), (half, pull, 0, code, False),
                                                 (half, pull, 2, code, True), (1, 0.3, 3, 2, False),
                                                 (0, pull, end, 1, False)):
-            for iso2 in (True, False):
+            for iso2, over2 in ((True, True), (True, False), (False, True)):
                 r_new, r_ref = reason.copy(), reason.copy()
                 p_new = np.full((H, W) if want else (0, 0), -7.0, np.float32)
                 p_ref = p_new.copy()
-                n_new = real(col, reg, off, r_new, half2, pull2, end2, code2, p_new, iso2)
-                n_ref = _rim_mask_reference(col, reg, off, r_ref, half2, pull2, end2, code2, p_ref, iso2)
+                n_new = real(col, reg, off, r_new, half2, pull2, end2, code2, p_new, iso2, over2, labels)
+                n_ref = _rim_mask_reference(col, reg, off, r_ref, half2, pull2, end2, code2, p_ref, iso2, over2, labels)
                 assert n_new == n_ref
                 np.testing.assert_array_equal(r_new, r_ref)
                 np.testing.assert_array_equal(p_new, p_ref)
@@ -1142,7 +1151,44 @@ def test_rim_mask_end_rule_masks_a_stretch_end_beside_a_striped_pixel_no_region_
         assert n == 2 + len(want)
         r_ref = np.zeros((1, W), np.uint8)
         r_ref[0, :2] = 1
-        assert _rim_mask_reference(col, reg, np.zeros(2, np.float32), r_ref, 1, 0.0, 2, 8, none, iso) == n
+        assert _rim_mask_reference(col, reg, np.zeros(2, np.float32), r_ref, 1, 0.0, 2, 8, none, iso, False,
+                                   np.zeros((1, W), np.uint8)) == n
+        np.testing.assert_array_equal(r_ref, reason)
+
+
+def test_rim_mask_end_rule_masks_a_stretch_end_whose_run_overflows_its_columns():
+    """``end_overflow``: the last pixel of a stretch whose colour run goes on for 2 px or more in
+    a region without columns (a run wider than the stripe its end was extrapolated over: two
+    surfaces' stripes of one colour merged at a silhouette) is masked; 1 px of overflow, another
+    colour beyond, or no region there is not."""
+    from gbscan import kernels
+
+    W = 20
+    col = np.full((1, W), np.nan, np.float32)
+    col[0, 4:10] = np.arange(6, dtype=np.float32) * 3.0
+    none = np.zeros((0, 0), np.float32)
+    for n_over, beyond_lab, beyond_reg, on, want in ((2, 2, 0, True, [9]), (3, 2, 0, True, [9]), (1, 2, 0, True, []),
+                                                     (2, 1, 0, True, []), (2, 2, -1, True, []), (2, 2, 0, False, [])):
+        region = np.full((1, W), -1, np.int32)
+        region[0, 4:10 + n_over] = 0
+        region[0, 10:10 + n_over] = beyond_reg
+        labels = np.zeros((1, W), np.uint8)
+        labels[0, 4:10] = [1, 1, 2, 2, 2, 2]      # the stretch ends in a blue run ...
+        labels[0, 10:10 + n_over] = beyond_lab     # ... that goes on past its columns (blue) or not
+        col_row = col.copy()
+        col_row[0, 10 + n_over:] = 100.0           # after it another surface's stretch (region 1)
+        region[0, 10 + n_over:] = 1
+        labels[0, 10 + n_over:] = 3              # (a colour neither run has)
+        reason = np.zeros((1, W), np.uint8)
+        reason[0, :4] = 1                          # dark before: the first two pixels go as ever
+        r_ref = reason.copy()
+        off = np.zeros(2, np.float32)
+        n = kernels.rim_mask(col_row, region, off, reason, 1, 0.0, 2, 8, none, False, on, labels)
+        # (the other stretch's first two pixels: beside the overflow's pixels without a column, but
+        # no signal-less pixel or isolated one within reach: kept; its last two: the image's side)
+        got = sorted(np.flatnonzero(reason[0] == 8))
+        assert got == [4, 5] + want + [W - 2, W - 1], (n_over, beyond_lab, beyond_reg, on)
+        assert _rim_mask_reference(col_row, region, off, r_ref, 1, 0.0, 2, 8, none, False, on, labels) == n
         np.testing.assert_array_equal(r_ref, reason)
 
 
@@ -1153,29 +1199,33 @@ def test_rim_mask_equals_its_per_pixel_form_on_random_rows():
     from gbscan import kernels
 
     rng = np.random.default_rng(3)
-    n_masked = 0
+    n_masked = n_over = 0
     for trial in range(40):
         H, W = int(rng.integers(1, 30)), int(rng.integers(1, 50))
         n_reg = int(rng.integers(1, 6))
         region = np.repeat(rng.integers(-1, n_reg, (H, W // 3 + 1)), 3, axis=1)[:, :W].astype(np.int32)
         col = (np.arange(W, dtype=np.float32)[None, :] * 1.3 + rng.normal(0, 1.5, (H, W))).astype(np.float32)
         col[rng.random((H, W)) < 0.15] = np.nan
+        col[np.repeat(rng.random((H, W // 2 + 1)) < 0.1, 2, axis=1)[:, :W]] = np.nan   # pairs: runs overflowing
         off = rng.integers(0, 50, n_reg).astype(np.float32) * 8
         off[rng.random(n_reg) < 0.2] = np.nan
         reason = rng.choice(np.array([0, 0, 0, 1, 2, 3, 5], np.uint8), size=(H, W))
+        labels = np.repeat(rng.integers(1, 4, (H, W // 2 + 1)), 2, axis=1)[:, :W].astype(np.uint8)
         for half, pull, end, code, want in ((2, 0.7, 2, 8, False), (1, 0.3, 1, 8, True), (0, 2.0, 3, 2, True),
                                             (3, 0.0, 1, 1, False), (2, 0.5, 0, 8, False)):
-            for iso in (True, False):
+            for iso, over in ((True, False), (False, False), (True, True), (False, True)):
                 r_new, r_ref = reason.copy(), reason.copy()
                 p_new = np.full((H, W) if want else (0, 0), -7.0, np.float32)
                 p_ref = p_new.copy()
-                n_new = kernels.rim_mask(col, region, off, r_new, half, pull, end, code, p_new, iso)
-                n_ref = _rim_mask_reference(col, region, off, r_ref, half, pull, end, code, p_ref, iso)
-                assert n_new == n_ref, (trial, half, pull, end, code, iso)
+                n_new = kernels.rim_mask(col, region, off, r_new, half, pull, end, code, p_new, iso, over, labels)
+                n_ref = _rim_mask_reference(col, region, off, r_ref, half, pull, end, code, p_ref, iso, over, labels)
+                assert n_new == n_ref, (trial, half, pull, end, code, iso, over)
                 np.testing.assert_array_equal(r_new, r_ref)
                 np.testing.assert_array_equal(p_new, p_ref)
                 n_masked += n_new
+                n_over += n_new if over else -n_new
     assert n_masked > 200
+    assert n_over > 0       # the overflow rule had pixels to mask
 
 
 def test_cut_unlocated_cuts_only_a_bridge_that_does_not_fit():

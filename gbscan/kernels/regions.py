@@ -806,7 +806,8 @@ def _end_need(gap, e, roww, flag, near, need):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, rim_code, pull_out, end_isolated):
+def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, rim_code, pull_out, end_isolated,
+             end_overflow=False, labels=np.zeros((0, 0), np.uint8)):
     """Mask ``rim_code`` into ``reason`` (H, W) uint8, in place where it is 0, where a column is
     unreliable near a silhouette or bend (see :func:`gbscan.decode.rim_rule`); returns the count.
 
@@ -819,7 +820,10 @@ def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, 
       and as close to a pixel whose reason is 1..3 (no signal: dark, saturated, low contrast) or
       to the image's left or right side (nothing measured beyond); with ``end_isolated`` also
       when the next pixel along the row has reason 0 but no region (a striped pixel no region
-      holds: a fragment of another surface, reported "isolated" later).
+      holds: a fragment of another surface, reported "isolated" later); with ``end_overflow``
+      also when the next two pixels have reason 0, a region, no column and the pixel's colour in
+      ``labels`` (H, W) uint8 (its run goes on past the columns' reach: see
+      :func:`gbscan.decode.rim_rule`).
     ``pull_out`` (H, W) float32 receives ``M[c] - c`` (pass a (0, 0) array to skip).
     Row-major with per-image-column accumulators; no image-size temporaries.  Per row: the pull
     test branch-free over the row, the end test's window only where the window is not all
@@ -920,6 +924,15 @@ def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, 
                             near_dark = True
                         elif end_isolated and cx == 0 and rg[x] < 0 and (x == u - 1 or x == u + 1):
                             near_dark = True
+                        elif end_overflow and cx == 0 and rg[x] >= 0 and crel[x] != crel[x] and \
+                                (x == u - 1 or x == u + 1):
+                            # the run goes on without a column for 2 px or more, in one colour
+                            # (a run wider than the stripe the columns reach: two surfaces'
+                            # stripes of one colour merged across a silhouette)
+                            x2 = 2 * x - u
+                            if 0 <= x2 < W and rsn[x2] == 0 and rg[x2] >= 0 and crel[x2] != crel[x2] and \
+                                    labels[v, x] == labels[v, u] and labels[v, x2] == labels[v, u]:
+                                near_dark = True
                         if crel[x] != crel[x]:
                             at_end = True
                     rim = at_end and near_dark
