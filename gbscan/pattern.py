@@ -173,8 +173,8 @@ def marker_gap_symbols(code: int = MARKER_CODE) -> tuple[int, ...]:
     each step a symbol whose three-gap window (with the two before it) has not occurred yet --
     among those, one whose pair with the symbol before has not occurred within the last
     ``PAIR_SPACING`` gaps while any such remains, the one whose pair occurred longest ago (never:
-    first), ties to the smaller gap -- until no three-gap window is left (108 symbols, 636
-    stripes)."""
+    first), ties to the smaller gap -- until no three-gap window is left (108 symbols: the last
+    marker at stripe 639)."""
     k = len(MARKER_GAPS)
     seq = _de_bruijn(k, 2)
     seq = seq + seq[:1]
