@@ -84,7 +84,8 @@ def add_rig_arguments(p) -> None:
     :func:`rig_from_args`."""
     p.add_argument("--baseline-mm", type=float, default=DEFAULT_BASELINE_MM,
                    help="camera-projector baseline of the simulated rig in mm (default 200; the projector stays "
-                        "toed in to 650 mm): less baseline, less grazing light and shadow, more depth noise.  "
+                        "toed in to 650 mm; negative: on the camera's left): less baseline, less grazing light "
+                        "and shadow, more depth noise.  "
                         "Plan a rig: 'gbcal simulate-session --baseline-mm B', 'gbcal calibrate', then scan "
                         "'gbscan simulate --baseline-mm B' frames with that calibration")
     p.add_argument("--camera", type=camera_size, default=DEFAULT_CAMERA_PX, metavar="WxH",
@@ -106,8 +107,9 @@ def rig_from_args(args):
     from .rig import paper_rig
 
     b = args.baseline_mm
-    if not (b > 0 and b < float("inf")):
-        raise GBError(f"--baseline-mm must be a positive length in mm (the projector right of the camera), got {b}")
+    if not (b != 0 and abs(b) < float("inf")):
+        raise GBError(f"--baseline-mm must be a non-zero length in mm (the projector that far right of the camera; "
+                      f"negative: left), got {b}")
     return paper_rig(baseline_mm=b, camera_px=tuple(args.camera), projector_px=tuple(args.projector))
 
 

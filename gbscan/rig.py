@@ -138,7 +138,9 @@ def paper_rig(baseline_mm: float = 200.0, distance_mm: float = 650.0, *, distort
     projector pixel covers about 0.43 camera pixels) sits ``baseline_mm`` to the right and is
     toed in so its axis crosses the camera axis at ``distance_mm``.  A shorter baseline sees less
     grazing light and shadow (more of a curved object is decoded) at a higher depth noise, which
-    grows as 1 / baseline: ``scripts/coverage_study.py --baseline-mm`` measures both.
+    grows as 1 / baseline: ``scripts/coverage_study.py --baseline-mm`` measures both.  A negative
+    ``baseline_mm`` puts the projector on the camera's left (the rig mirrored; the decoder's rules
+    were tuned with it on the right: docs/method.md, "Known limits").
     ``camera_px`` (W, H): a sensor of that many pixels behind the same lens (square pixels, their
     pitch scaled by 640 / W: fx = fy = 800 W / 640, the principal point at the centre, the same
     distortion), e.g. (1280, 960) for twice the paper camera's pixels over its field of view;
@@ -149,9 +151,10 @@ def paper_rig(baseline_mm: float = 200.0, distance_mm: float = 650.0, *, distort
     camera (pair it with a larger camera or wider stripes), and a pattern of 8-px stripes has 240
     of them (see :mod:`gbscan.pattern`, the marker code).
     """
-    if not (np.isfinite(baseline_mm) and baseline_mm > 0 and np.isfinite(distance_mm) and distance_mm > 0):
-        raise GBError(f"paper_rig: baseline_mm and distance_mm must be positive lengths in mm (the projector right "
-                      f"of the camera, toed in to distance_mm in front of it), got {baseline_mm}, {distance_mm}")
+    if not (np.isfinite(baseline_mm) and baseline_mm != 0 and np.isfinite(distance_mm) and distance_mm > 0):
+        raise GBError(f"paper_rig: baseline_mm must be a non-zero length in mm (the projector that far right of the "
+                      f"camera; negative: left) and distance_mm a positive one (toed in to that distance in front "
+                      f"of the camera), got {baseline_mm}, {distance_mm}")
     try:
         W, H = (int(x) for x in camera_px)
     except (TypeError, ValueError):

@@ -25,6 +25,7 @@ pixel with the simulator's truth (``r.proj_xy``):
     python scripts/sweep_decode.py --cache DIR --set room-light   # warm and cool room light (44 frames)
     python scripts/sweep_decode.py --cache DIR --set clean        # the clean preset (16 frames)
     python scripts/sweep_decode.py --cache DIR --set baselines    # other baselines (33 frames)
+    python scripts/sweep_decode.py --cache DIR --set mirrored     # the projector on the camera's left (21 frames)
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
 wrong non-edge pixels under it (all wrong regions with ``--edges``), and a total.  Progress lines go to stderr.  Renders are cached in ``--cache`` (npz).
@@ -45,7 +46,7 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 
 
 #: the frame sets of ``--set``: the sweep's 48 scenes, the same objects under room light, the clean preset
-SETS = ("main", "room-light", "clean", "baselines")
+SETS = ("main", "room-light", "clean", "baselines", "mirrored")
 
 
 def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str, int, int, object]]:
@@ -62,6 +63,8 @@ def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str,
         return _clean_set(S, quick)
     if which == "baselines":
         return _baseline_set(S, quick)
+    if which == "mirrored":
+        return _mirrored_set(S, quick)
     if which != "main":
         raise ValueError(f"unknown frame set {which!r}, expected one of {SETS}")
     out = []
@@ -156,6 +159,20 @@ def _baseline_set(S, quick: bool) -> list:
     for b in BASELINES_MM:
         for seed in range(3):
             out.append((f"multi_650_b{b}_s{seed}", f"typical/b{b}", seed, 3, lambda: S.multi_object(650.0)))
+    return out[::3] if quick else out
+
+
+def _mirrored_set(S, quick: bool) -> list:
+    # the paper rig mirrored, its projector 200 mm to the camera's left (docs/method.md "Known
+    # limits": every rule was tuned with it on the right): the multi-object scene at four depths,
+    # the head, the sphere and the step, seeds 0-2
+    out = []
+    for seed in range(3):
+        for d in (600.0, 650.0, 700.0, 760.0):
+            out.append((f"multi_{d:.0f}_left_s{seed}", "typical/b-200", seed, 3, lambda d=d: S.multi_object(d)))
+        out.append((f"head_left_s{seed}", "typical/b-200", seed, 3, lambda: S.head(650.0)))
+        out.append((f"sphere_left_s{seed}", "typical/b-200", seed, 3, lambda: S.sphere()))
+        out.append((f"step_left_s{seed}", "typical/b-200", seed, 3, lambda: S.step(650.0, 40.0)))
     return out[::3] if quick else out
 
 
@@ -322,7 +339,9 @@ def main(argv=None) -> int:
                          "sphere / head / multi-object / step, cool light 0.15, 0.25 on the first three, seeds "
                          "0-1; docs/method.md 'Ambient light'), clean (the clean preset, 16 frames), baselines "
                          "(the multi-object scene with the projector 100-300 mm from the camera, seeds 0-2, 33 "
-                         "frames; docs/method.md 'Baseline 200 mm')")
+                         "frames; docs/method.md 'Baseline 200 mm'), mirrored (the projector 200 mm to the "
+                         "camera's left: the multi-object scene at 600-760 mm, head, sphere, step, seeds 0-2, 21 "
+                         "frames; docs/method.md 'Known limits')")
     ap.add_argument("--edges", action="store_true", help="also list regions wrong only on depth-edge pixels")
     ap.add_argument("--unwrap", action="append", default=[], metavar="NAME=VALUE",
                     help="override an UnwrapParams field (repeatable), e.g. --unwrap link_rows=3")
@@ -371,8 +390,8 @@ def main(argv=None) -> int:
     scenes = [s for s in scene_list(args.quick, args.set) if not args.only or args.only in s[0]]
     if args.depth_range is not None and not 0 < args.depth_range[0] < args.depth_range[1]:
         ap.error(f"--depth-range: expected 0 < MIN_MM < MAX_MM, got {args.depth_range}")
-    if args.depth_range is not None and args.set == "baselines":
-        ap.error("--depth-range: the working volume is the 200 mm rig's; not with --set baselines")
+    if args.depth_range is not None and args.set in ("baselines", "mirrored"):
+        ap.error(f"--depth-range: the working volume is the 200 mm rig's; not with --set {args.set}")
     volume = working_volume(args.depth_range)
     if sigmas:
         print(f"{'blur_px':>7s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'bad scenes':>10s}")

@@ -236,7 +236,7 @@ def test_cli_simulators_take_a_baseline(tmp_path, capsys):
         med[name] = float(np.median(np.abs(z[ok] - true_z[ok])))
     assert med["150"] < 0.25 and med["200"] > 20.0, med   # measured 0.10 and 29 mm
     capsys.readouterr()
-    for bad in ("0", "-100", "nan"):
+    for bad in ("0", "inf", "nan"):
         assert main(["simulate", "plane", "-o", str(tmp_path / "x.png"), "--baseline-mm", bad]) == 1
         assert "--baseline-mm" in capsys.readouterr().err
         assert gbcal_main(["simulate-session", str(tmp_path / "y"), "--baseline-mm", bad, "--quiet"]) == 1
@@ -244,6 +244,11 @@ def test_cli_simulators_take_a_baseline(tmp_path, capsys):
     assert not (tmp_path / "x.png").exists() and not (tmp_path / "y").exists()
     with pytest.raises(GBError, match="baseline_mm"):
         sim.paper_rig(baseline_mm=float("inf"))
+    # a negative baseline: the projector on the camera's left, the rig mirrored
+    left, right = sim.paper_rig(baseline_mm=-200.0), sim.paper_rig()
+    np.testing.assert_allclose(left.t_cam_proj, [-200.0, 0.0, 0.0])
+    flip = np.diag([-1.0, 1.0, 1.0])
+    np.testing.assert_allclose(left.R_cam_proj, flip @ right.R_cam_proj @ flip, atol=1e-12)
 
 
 def test_cli_simulators_take_a_camera(tmp_path, capsys):
