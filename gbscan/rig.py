@@ -155,19 +155,8 @@ def paper_rig(baseline_mm: float = 200.0, distance_mm: float = 650.0, *, distort
         raise GBError(f"paper_rig: baseline_mm must be a non-zero length in mm (the projector that far right of the "
                       f"camera; negative: left) and distance_mm a positive one (toed in to that distance in front "
                       f"of the camera), got {baseline_mm}, {distance_mm}")
-    try:
-        W, H = (int(x) for x in camera_px)
-    except (TypeError, ValueError):
-        raise GBError(f"paper_rig: camera_px must be (width, height) in pixels, got {camera_px!r}") from None
-    lo, hi = CAMERA_SIDE_PX
-    if not (lo <= W <= hi and lo <= H <= hi) or (W, H) != tuple(camera_px):
-        raise GBError(f"paper_rig: camera_px must be whole numbers of pixels in [{lo}, {hi}], got {camera_px!r}")
-    try:
-        PW, PH = (int(x) for x in projector_px)
-    except (TypeError, ValueError):
-        raise GBError(f"paper_rig: projector_px must be (width, height) in pixels, got {projector_px!r}") from None
-    if not (lo <= PW <= hi and lo <= PH <= hi) or (PW, PH) != tuple(projector_px):
-        raise GBError(f"paper_rig: projector_px must be whole numbers of pixels in [{lo}, {hi}], got {projector_px!r}")
+    W, H = _size_px(camera_px, "camera_px")
+    PW, PH = _size_px(projector_px, "projector_px")
     f = 800.0 * W / 640.0
     cam = Camera(
         W,
@@ -180,3 +169,15 @@ def paper_rig(baseline_mm: float = 200.0, distance_mm: float = 650.0, *, distort
     eye = np.array([baseline_mm, 0.0, 0.0])
     R = look_at(eye, np.array([0.0, 0.0, distance_mm]))
     return Rig(cam, proj, R, eye)
+
+
+def _size_px(size, name: str) -> tuple[int, int]:
+    # paper_rig's (width, height) argument ``name`` as whole pixels in CAMERA_SIDE_PX, else GBError
+    try:
+        w, h = (int(x) for x in size)
+    except (TypeError, ValueError):
+        raise GBError(f"paper_rig: {name} must be (width, height) in pixels, got {size!r}") from None
+    lo, hi = CAMERA_SIDE_PX
+    if not (lo <= w <= hi and lo <= h <= hi) or (w, h) != tuple(size):
+        raise GBError(f"paper_rig: {name} must be whole numbers of pixels in [{lo}, {hi}], got {size!r}")
+    return w, h

@@ -318,8 +318,6 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="typical", choices=("clean", "typical", "hard"))
     ap.add_argument("--out", help="folder for the coverage pictures (created)")
     ap.add_argument("--yaw-deg", type=float, help="turn the scenes that take a yaw (head, fran_face) by this much")
-    ap.add_argument("--marker-code", type=int, choices=(1, 2), default=2,
-                    help="the pattern's marker sequence (gbscan.pattern; default 2; 1: the one before 2026-11-28)")
     ap.add_argument("--depth-range", type=float, nargs=2, metavar=("MIN_MM", "MAX_MM"),
                     help="scan with this depth range, as gbscan scan --depth-range (cleaning and the decoder's "
                          "working volume)")
@@ -335,8 +333,10 @@ def main(argv=None) -> int:
                     help="also print the decoded columns' signed error by distance to the reported area's edges")
     from gbscan.cli_common import (add_rig_arguments, add_ambient_argument, add_bayer_argument, add_capture_arguments,
                                    ambient_fields, ambient_label, capture_fields, capture_label, rig_from_args)
+    from gbscan.commands.decode import add_marker_code_argument
 
     add_rig_arguments(ap)
+    add_marker_code_argument(ap)   # --marker-code, as gbscan pattern / decode take it
     add_ambient_argument(ap)
     add_bayer_argument(ap)
     add_capture_arguments(ap)
