@@ -92,21 +92,25 @@ def _read(session: Session, pose: int, name: str) -> np.ndarray:
 
 def calibrate_session(session_dir, *, model: str = "k1k2p1p2", loss: str = "soft_l1", f_scale_px: float = 0.5,
                       stripe_weight: float = 1.0, max_samples_per_capture: int = 20000,
-                      min_captures: int = MIN_CAPTURES, log=None, seed: int = 0) -> CalibrationRun:
+                      min_captures: int = MIN_CAPTURES, log=None, seed: int = 0,
+                      corner_refiner: str = "symmetric") -> CalibrationRun:
     """Calibrate the rig from a capture session folder (module docstring).
 
     model : camera distortion model (:data:`gbcal.bundle.DIST_MODELS`).
     loss, f_scale_px : robust loss of the bundle and its scale (camera px).
     stripe_weight : weight of a boundary sample relative to a corner coordinate.
     max_samples_per_capture : boundary samples kept per capture (random, seeded), for speed.
+    corner_refiner : :data:`gbcal.board.CORNER_REFINERS` (``symmetric``, the default, or
+        ``cornersubpix``), recorded in the calibration's ``residuals``.
     Raises GBError for unreadable/missing/mis-sized frames, too few usable captures, or an
     unobservable capture set.
     """
-    from .board import Board, detect_with_reason
+    from .board import Board, check_refiner, detect_with_reason
     from .bundle import BundleData, refine, rodrigues, rotation_vector
     from .intrinsics import calibrate_camera
 
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
+    check_refiner(corner_refiner)
     t_start = time.perf_counter()
     timings = {}
     session = load_session(session_dir)
@@ -122,7 +126,7 @@ def calibrate_session(session_dir, *, model: str = "k1k2p1p2", loss: str = "soft
     detections, samples = [], []
     for i, name in enumerate(names):
         white = _read(session, i, "white")
-        det, why = detect_with_reason(white, board)
+        det, why = detect_with_reason(white, board, refiner=corner_refiner)
         if det is None:
             captures[i].reason = f"no usable board: {why}"
             detections.append(None)
@@ -244,7 +248,8 @@ def calibrate_session(session_dir, *, model: str = "k1k2p1p2", loss: str = "soft
         "corners": int(len(rc_all)), "stripe_samples": int(inl.sum()),
         "stripe_outliers": int((~inl).sum()) + int((~keep).sum()),
         "captures_used": len(used), "captures_total": len(names),
-        "camera_model": model, "loss": loss, "f_scale_px": f_scale_px, "stripe_weight": stripe_weight,
+        "camera_model": model, "corner_refiner": corner_refiner, "loss": loss, "f_scale_px": f_scale_px,
+        "stripe_weight": stripe_weight,
         "stripe_residual_unit": "camera px along the row (projector px / |d column / d u|)",
         "captures": per,
     }
@@ -320,7 +325,8 @@ def summary_lines(run: CalibrationRun) -> list[str]:
     for c in run.captures:
         if not c.used:
             out.append(f"  dropped {c.name}: {c.reason}")
-    out.append(f"corner RMS {r['corner_rms_px']:.3f} px over {r['corners']} corners; stripe RMS "
+    out.append(f"corner RMS {r['corner_rms_px']:.3f} px over {r['corners']} corners ({r.get('corner_refiner', '?')} "
+               f"refinement); stripe RMS "
                f"{r['stripe_rms_px']:.3f} px ({r['stripe_rms_proj_px']:.3f} projector px, "
                f"{r['plane_rms_mm']:.3f} mm from the planes) over {r['stripe_samples']} boundary samples")
     out.append(f"camera fx {K[0, 0]:.2f} ± {st.get('fx', float('nan')):.2f}  fy {K[1, 1]:.2f} ± "

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from gbcal.board import (Board, Detection, canonical_order, detect, detect_with_reason, draw_detection,
-                         grid_irregularity, parse_board)
+                         grid_irregularity, parse_board, refine_corners, refine_corners_symmetric)
 from gbscan.camera import Camera
 from gbscan.errors import GBError
 
@@ -115,6 +115,82 @@ def test_refinement_beats_the_sector_detector_alone():
             e.append(detect(img, b, refine=refine).corners - truth)
         errs[refine] = np.sqrt(np.mean(np.sum(np.concatenate(e) ** 2, axis=1)))
     assert errs[True] < 0.8 * errs[False], errs
+
+
+# -- the symmetric corner refiner --------------------------------------------------------------
+def x_junction(q, e1, e2, *, size=(120, 100), width_px=1.2, gamma=1.0, gain=(0.0, 0.0), offset=(0.0, 0.0)):
+    """An exactly point-symmetric corner at ``q``: two smooth edges along unit directions ``e1``,
+    ``e2`` (any angle), contrast ``tanh(.) * tanh(.)``, then a tone curve, a lighting gain and an
+    offset that are linear across the image (float64 (H, W) grey levels)."""
+    v, u = np.mgrid[0:size[1], 0:size[0]].astype(np.float64)
+    p = np.stack([u - q[0], v - q[1]], -1)
+    n1, n2 = np.array([-e1[1], e1[0]]), np.array([-e2[1], e2[0]])
+    s = np.tanh(p @ n1 / width_px) * np.tanh(p @ n2 / width_px)
+    img = 255.0 * ((0.5 + 0.4 * s) ** (1.0 / gamma))
+    return img * (1.0 + p @ np.asarray(gain)) + p @ np.asarray(offset)
+
+
+def grid_around(q, e1, e2, spacing):
+    """A 3x3 (rows, cols) corner grid of spacing ``spacing`` px centred on ``q`` (for the window size)."""
+    j, i = np.mgrid[-1:2, -1:2]
+    return q + spacing * (i.reshape(-1, 1) * np.asarray(e1) + j.reshape(-1, 1) * np.asarray(e2))
+
+
+@pytest.mark.parametrize("case", [
+    dict(),                                                    # square corner
+    dict(e2=(0.45, 0.893)),                                    # perspective: 63 degrees
+    dict(gamma=2.2, width_px=2.0),                             # tone curve, more blur
+    dict(gain=(0.004, -0.003), offset=(0.3, 0.2)),             # lighting gradient
+])
+def test_symmetric_refiner_finds_an_exact_corner(case):
+    case = dict(case)
+    e1 = np.array([0.995, 0.0998])
+    e2 = np.asarray(case.pop("e2", (-0.0998, 0.995)))
+    e2 = e2 / np.linalg.norm(e2)
+    b = Board(3, 3, 10.0)
+    photometric = "gain" in case
+    # On the half-pixel lattice the sample pairs fall on mirrored pixels: exact (the linear light
+    # model leaves a second-order residual there).  Elsewhere bilinear interpolation of the two
+    # sides differs a little ("pixel locking"): up to ~0.013 px on these sharp edges.
+    for q, tol in (((60.5, 50.0), 5e-3 if photometric else 1e-6), ((60.37, 49.71), 0.015), ((60.12, 50.2), 0.015)):
+        q = np.array(q)
+        img = x_junction(q, e1, e2, **case)
+        start = grid_around(q, e1, e2, 24.0) + np.array([0.6, -0.5])
+        got = refine_corners_symmetric(img, b, start)
+        assert np.linalg.norm(got[4] - q) < tol, (q, got[4] - q)
+
+
+def test_symmetric_refiner_halves_cornersubpix_error_on_rendered_boards():
+    b = Board(9, 6, 25.0)
+    errs = {"cornersubpix": [], "symmetric": []}
+    for k, ang in enumerate([(20, -25, 5), (-30, 15, -10), (10, 35, 30)]):
+        R, t = centred_pose(b, rot(*ang), 620.0)
+        img, truth = render_board(b, R, t, ss=3, noise=1.0, seed=k)
+        start = detect(img, b, refine=False).corners
+        for name in errs:
+            errs[name].append(refine_corners(img, b, start, name) - truth)
+    rms = {k: float(np.sqrt(np.mean(np.concatenate(v) ** 2))) for k, v in errs.items()}
+    assert rms["symmetric"] < 0.6 * rms["cornersubpix"] and rms["symmetric"] < 0.03, rms
+
+
+def test_symmetric_refiner_keeps_corners_it_cannot_place():
+    b = Board(3, 3, 10.0)
+    flat = np.full((100, 120), 128.0)
+    c = grid_around(np.array([60.0, 50.0]), (1.0, 0.0), (0.0, 1.0), 20.0)
+    np.testing.assert_array_equal(refine_corners_symmetric(flat, b, c), c)  # no corner: singular
+    e1, e2 = np.array([1.0, 0.0]), np.array([0.0, 1.0])
+    img = x_junction(np.array([60.0, 50.0]), e1, e2)
+    far = grid_around(np.array([63.0, 50.0]), e1, e2, 20.0)  # 3 px off: out of reach of max_shift_px
+    np.testing.assert_array_equal(refine_corners_symmetric(img, b, far, max_shift_px=1.0)[4], far[4])
+    np.testing.assert_allclose(refine_corners_symmetric(img, b, far, max_shift_px=5.0)[4], [60.0, 50.0], atol=1e-6)
+    assert refine_corners_symmetric(img, b, np.zeros((0, 2))).shape == (0, 2)
+
+
+def test_unknown_corner_refiner_is_an_error():
+    b = Board(9, 6, 25.0)
+    img, _ = render_board(b, *centred_pose(b, rot(10, 10, 0), 620.0))
+    with pytest.raises(GBError, match="corner refiner must be one of symmetric, cornersubpix"):
+        detect(img, b, refiner="harris")
 
 
 def test_colour_and_grey_input_agree():

@@ -257,7 +257,16 @@ def test_camera_command_writes_a_camera_only_calibration(board_images, tmp_path)
     assert abs(calib.camera.K[0, 0] / cam.K[0, 0] - 1) < 0.005
     assert calib.residuals["captures_used"] == 6 and "fx" in calib.uncertainty["camera_std"]
     assert calib.created["board"] == {"cols": 9, "rows": 6, "square_mm": 25.0}
+    assert calib.residuals["corner_refiner"] == "symmetric"
     assert len(list((tmp_path / "prev").glob("*_corners.png"))) == 7
+    old = tmp_path / "camera_csp.yaml"
+    r = gbcal("camera", folder, "--board", "9x6", "--square-mm", 25, "-o", old, "--model", "k1k2p1p2",
+              "--corners", "cornersubpix")
+    assert r.returncode == 0, r.stderr
+    csp = load_calibration(old, require_planes=False)
+    assert csp.residuals["corner_refiner"] == "cornersubpix"
+    # the symmetric refiner's corners fit one camera better than cornerSubPix's alone
+    assert calib.residuals["camera_rms_px"] < csp.residuals["camera_rms_px"], (calib.residuals, csp.residuals)
 
 
 def test_camera_command_bad_input_is_one_line_and_leaves_no_file(board_images, tmp_path, capsys):
@@ -285,6 +294,11 @@ def test_camera_command_bad_input_is_one_line_and_leaves_no_file(board_images, t
         ([str(tmp_path / "*.jpeg")], "no file matches"),
         ([folder, "--board", "9by6"], "COLSxROWS"),
     ]
+    with pytest.raises(SystemExit) as exit_:
+        gbcal_inprocess(capsys, "camera", folder, "--board", "9x6", "--square-mm", 25, "-o", out, "--corners", "harris")
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and "invalid choice: 'harris'" in err and not out.exists()
+    assert len(err.strip().splitlines()) == 1, err
     for images, message in cases:
         board = [] if "--board" in images else ["--board", "9x6"]
         code, _, err = gbcal_inprocess(capsys, "camera", *images, *board, "--square-mm", 25, "-o", out)

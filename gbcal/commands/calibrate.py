@@ -12,12 +12,24 @@ from __future__ import annotations
 HELP = "calibrate camera + projector light planes from a capture session"
 
 
+def add_corners_argument(p):
+    """``--corners`` (the corner refiner, :data:`gbcal.board.CORNER_REFINERS`), shared by the commands
+    that detect boards."""
+    from ..board import CORNER_REFINERS, DEFAULT_CORNER_REFINER
+
+    p.add_argument("--corners", choices=CORNER_REFINERS, default=DEFAULT_CORNER_REFINER,
+                   help="corner refinement: symmetric (default; cornerSubPix, then a point-symmetry fit over "
+                        "the corner's window: about half cornerSubPix's error on rendered boards) or "
+                        "cornersubpix (OpenCV's alone, as before)")
+
+
 def add_arguments(p):
     p.add_argument("session", help="capture session folder (session.yaml + pose_NNN/)")
     p.add_argument("-o", "--output", required=True, help="calibration file to write (YAML)")
     p.add_argument("--preview", metavar="DIR", help="also write per-capture pictures (board, boundary samples) here")
     p.add_argument("--model", default="k1k2p1p2", choices=["k1k2p1p2k3", "k1k2p1p2", "k1k2", "k1", "none"],
                    help="camera distortion model (default k1k2p1p2: k3 fixed at 0)")
+    add_corners_argument(p)
     p.add_argument("--loss", default="soft_l1", choices=["soft_l1", "huber", "cauchy", "linear"],
                    help="robust loss of the bundle adjustment (default soft_l1)")
     p.add_argument("--f-scale-px", type=float, default=0.5,
@@ -42,7 +54,8 @@ def run(args) -> int:
     if not out.parent.is_dir():
         raise GBError(f"cannot write {out}: folder {out.parent} does not exist (create it first)")
     run_ = calibrate_session(args.session, model=args.model, loss=args.loss, f_scale_px=args.f_scale_px,
-                             stripe_weight=args.stripe_weight, max_samples_per_capture=args.max_samples)
+                             stripe_weight=args.stripe_weight, max_samples_per_capture=args.max_samples,
+                             corner_refiner=args.corners)
     if args.preview:
         from ..report import write_capture_previews
 

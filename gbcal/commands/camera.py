@@ -23,6 +23,9 @@ def add_arguments(p):
     p.add_argument("-o", "--output", required=True, help="output calibration file (YAML)")
     p.add_argument("--model", choices=MODELS, default="k1k2p1p2k3",
                    help="distortion model (default k1k2p1p2k3; k1k2p1p2 = k3 fixed at 0, steadier with few images)")
+    from .calibrate import add_corners_argument
+
+    add_corners_argument(p)
     p.add_argument("--fix-aspect", action="store_true", help="hold fx = fy (square pixels)")
     p.add_argument("--zero-tangent", action="store_true", help="hold p1 = p2 = 0")
     p.add_argument("--max-blur-px", type=float, default=None,
@@ -102,7 +105,8 @@ def run(args) -> int:
         elif s != size:
             raise GBError(f"image {path} is {s[0]}x{s[1]} but {paths[0]} is {size[0]}x{size[1]}; all images "
                           "must come from one camera at one resolution")
-        det, reason = detect_with_reason(gray, board, max_sharpness_px=max_blur, what=f"image {path}")
+        det, reason = detect_with_reason(gray, board, max_sharpness_px=max_blur, what=f"image {path}",
+                                         refiner=args.corners)
         detections.append(det)
         names.append(path.name)
         status = (f"found ({det.method}, edges {det.sharpness_px:.1f} px)" if det is not None
@@ -136,7 +140,8 @@ def run(args) -> int:
 
     calib = Calibration(cam, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0),
                         created={"board": {"cols": board.cols, "rows": board.rows, "square_mm": board.square_mm}},
-                        residuals=res.residuals_dict(), uncertainty=res.uncertainty_dict())
+                        residuals={**res.residuals_dict(), "corner_refiner": args.corners},
+                        uncertainty=res.uncertainty_dict())
     if preview is not None:
         obj = board.object_points()
         for v in res.views:
