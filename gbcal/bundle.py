@@ -130,6 +130,51 @@ class BundleResult:
     cov: np.ndarray | None = None           # (n, n) parameter covariance (None if singular)
     problem: "BundleProblem | None" = None
 
+    def depth_std(self, pixels: np.ndarray, distance_mm: float) -> np.ndarray:
+        """1-sigma uncertainty (mm) of the depth a scan gives for a point at ``distance_mm`` (z,
+        camera frame) on the rays of camera ``pixels`` (N, 2), propagated from the camera's and
+        the projector's parameter covariance (board poses do not enter a scan).
+
+        The point is placed with the refined rig; its projector column is then triangulated
+        again under each perturbed parameter (the pixel's ray met with that column's plane), so
+        the figure is what an error of the calibration does to a scanned depth -- mostly a scale:
+        ``distance_mm * std(fx) / fx`` when fx dominates.  NaN for pixels whose point falls
+        outside the projector frame (not lit), and everywhere when the covariance is unknown.
+        """
+        q = np.asarray(pixels, np.float64).reshape(-1, 2)
+        out = np.full(len(q), np.nan)
+        if self.cov is None or self.problem is None or not len(q):
+            return out
+        prob, th = self.problem, self.theta
+        rig0 = prob.rig(th)
+        xn = rig0.camera.normalize(q)
+        p0 = np.concatenate([xn, np.ones((len(q), 1))], axis=1) * float(distance_mm)
+        xy = rig0.project_to_projector(p0)
+        col = xy[:, 0]
+        ok = (np.all(np.isfinite(xy), axis=1) & (col >= -0.5) & (col <= rig0.projector.width - 0.5)
+              & (xy[:, 1] >= -0.5) & (xy[:, 1] <= rig0.projector.height - 0.5))
+        if not ok.any():
+            return out
+        q, col = q[ok], col[ok]
+
+        def depth(t):
+            rig = prob.rig(t)
+            r = np.concatenate([rig.camera.normalize(q), np.ones((len(q), 1))], axis=1)
+            n, d = rig.column_planes(col)
+            return d / np.einsum("ij,ij->i", n, r)  # z of the ray [x, y, 1] scaled to the plane
+
+        z0 = depth(th)
+        idx = np.r_[0:prob.n_cam, prob.i_proj:prob.n]
+        J = np.empty((len(q), idx.size))
+        for k, j in enumerate(idx):
+            h = 1e-6 * max(abs(th[j]), 1.0)
+            t = th.copy()
+            t[j] += h
+            J[:, k] = (depth(t) - z0) / h
+        C = self.cov[np.ix_(idx, idx)]
+        out[ok] = np.sqrt(np.maximum(np.einsum("pk,kl,pl->p", J, C, J), 0.0))
+        return out
+
     def plane_std(self, columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """1-sigma uncertainty of the light planes of projector ``columns`` (P,): (normal
         direction (P,) deg, offset d (P,) mm), propagated from the projector parameters'

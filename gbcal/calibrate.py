@@ -255,14 +255,19 @@ def calibrate_session(session_dir, *, model: str = "k1k2p1p2", loss: str = "soft
     }
     std = res.std
     n_std_deg, d_std_mm = res.plane_std(cols)
+    depth_at_mm, depth_std = depth_uncertainty(res, obj)
     uncertainty = {
         "camera_std": {k: _g(std[k]) for k in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3") if k in std},
         "projector_std": {k.replace("proj_", ""): _g(v) for k, v in std.items() if k.startswith("proj_")},
         "baseline_std_mm": _g(std.get("baseline_mm", float("nan"))),
         "plane_normal_std_deg": {"median": _g(np.median(n_std_deg)), "max": _g(np.max(n_std_deg))},
         "plane_d_std_mm": {"median": _g(np.median(d_std_mm)), "max": _g(np.max(d_std_mm))},
+        "depth_std_mm": {"distance_mm": round(depth_at_mm, 1), "centre": _g(depth_std[0]),
+                         "max": _g(np.nanmax(depth_std)) if np.isfinite(depth_std).any() else None},
         "residual_sigma": {k: _g(v) for k, v in res.sigma.items()},
-        "note": "1-sigma from (J^T W J)^-1, W = inverse variance of each residual kind (inliers)",
+        "note": "1-sigma from (J^T W J)^-1, W = inverse variance of each residual kind (inliers); depth_std_mm: "
+                "a scanned point's depth at the boards' median distance, at the image centre and the worst of a "
+                "5x5 grid over the lit image (mostly a scale error: distance x std(fx) / fx)",
     }
     projector = {
         "model": "pinhole",
@@ -314,6 +319,24 @@ def save_run(path, run: CalibrationRun) -> tuple[Path, Path]:
     return path, npz
 
 
+def depth_uncertainty(res, board_xyz: np.ndarray) -> tuple[float, np.ndarray]:
+    """(distance mm, (26,) mm): the 1-sigma depth uncertainty a scan inherits from the
+    calibration (:meth:`gbcal.bundle.BundleResult.depth_std`) at the median distance of the
+    board centres, for the image centre (first) and a 5x5 grid over 10-90 % of the image (NaN
+    where the projector does not light that point)."""
+    from .bundle import rodrigues
+
+    centre_b = np.asarray(board_xyz, np.float64).mean(axis=0)
+    R = rodrigues(np.asarray(res.rvecs, np.float64))
+    z = np.einsum("pij,j->pi", R, centre_b)[:, 2] + np.asarray(res.tvecs)[:, 2]
+    dist = float(np.median(z))
+    cam = res.rig.camera
+    f = np.linspace(0.1, 0.9, 5)
+    gu, gv = np.meshgrid(f * (cam.width - 1), f * (cam.height - 1))
+    q = np.concatenate([[[(cam.width - 1) / 2, (cam.height - 1) / 2]], np.stack([gu.ravel(), gv.ravel()], 1)])
+    return dist, res.depth_std(q, dist)
+
+
 def summary_lines(run: CalibrationRun) -> list[str]:
     """The human summary ``gbcal calibrate`` prints."""
     cal = run.calibration
@@ -340,6 +363,12 @@ def summary_lines(run: CalibrationRun) -> list[str]:
                f"{pj['baseline_mm']:.2f} ± {cal.uncertainty.get('baseline_std_mm', float('nan')):.2f} mm; "
                f"{cal.n_planes} light planes (boundaries {cal.plane_index[0]}..{cal.plane_index[-1]}, normals ± "
                f"{cal.uncertainty.get('plane_normal_std_deg', {}).get('max', float('nan')):.4f} deg at most)")
+    ds = cal.uncertainty.get("depth_std_mm") or {}
+    if ds.get("centre") is not None:
+        mx = ds.get("max")
+        out.append(f"depth uncertainty of a scan at {ds['distance_mm']:.0f} mm (the boards' median distance): "
+                   f"± {ds['centre']:.3f} mm at the image centre" + (f", ± {mx:.3f} mm at most" if mx else "")
+                   + " (1 sigma; mostly the scale, from fx: more poses, a bigger board or steeper tilts narrow it)")
     worst = sorted(used, key=lambda c: -c.stripe_rms_px if np.isfinite(c.stripe_rms_px) else 0)[:1]
     if worst:
         out.append(f"worst capture: {worst[0].name} (corner RMS {worst[0].corner_rms_px:.3f} px, stripe RMS "

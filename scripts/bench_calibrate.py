@@ -92,8 +92,10 @@ def main(argv=None) -> int:
         s = Scanner(c).scan(rr.image)
         dz = (s.xyz[..., 2] - rr.point[..., 2])[s.valid & keep]
         out.append((float(np.sqrt(np.mean(dz ** 2))), float(np.mean(dz))))
+    ds = cal.uncertainty.get("depth_std_mm") or {}
     print(f"plane at 650 mm scanned end to end (decoded columns): depth RMS {out[0][0]:.4f} mm (estimated, mean "
-          f"{out[0][1]:+.4f}) vs {out[1][0]:.4f} mm (true); corners refined by {args.corners}")
+          f"{out[0][1]:+.4f}) vs {out[1][0]:.4f} mm (true); the calibration states +- {ds.get('centre', float('nan')):.4f} "
+          f"mm at {ds.get('distance_mm', float('nan')):.0f} mm (1 sigma, image centre); corners refined by {args.corners}")
     if tmp:
         tmp.cleanup()
     return 0

@@ -166,3 +166,45 @@ def test_bad_inputs_are_named():
     data = synthetic_data(rig, rv, tv, cols=COLS, rows=ROWS, square_mm=SQ, columns=np.array([500.5]))
     with pytest.raises(GBError, match="distortion model"):
         BundleProblem(data, rig.camera, rv, tv, rig, dist_model="fisheye")
+
+
+def test_depth_std_bounds_the_scanned_depth_error_and_matches_a_direct_perturbation():
+    import dataclasses
+
+    rig = paper_rig()
+    rv, tv = _poses(8, seed=5)
+    cols = np.arange(2, 127, 2) * 8 - 0.5
+    data = synthetic_data(rig, rv, tv, cols=COLS, rows=ROWS, square_mm=SQ, columns=cols, samples_per_line=12,
+                          corner_noise_px=0.1, stripe_noise_px=0.05, seed=7)
+    cam0, rig0 = _perturbed(rig)
+    res = refine(data, cam0, rv, tv, rig0, log=lambda s: None)
+    q = np.array([[319.5, 239.5], [120.0, 110.0], [500.0, 350.0]])
+    s = res.depth_std(q, 650.0)
+    assert np.all(np.isfinite(s)) and np.all(s > 0) and np.all(s < 1.0), s
+
+    def scanned_depth(scan_rig, true_rig, q, z):
+        """Depth that ``scan_rig`` gives for pixel ``q`` lit by the column the true point at ``z`` sees."""
+        p = np.concatenate([true_rig.camera.normalize(q), np.ones((len(q), 1))], axis=1) * z
+        col = true_rig.project_to_projector(p)[:, 0]
+        n, d = scan_rig.column_planes(col)
+        r = np.concatenate([scan_rig.camera.normalize(q), np.ones((len(q), 1))], axis=1)
+        return d / np.sum(n * r, axis=1)
+
+    err = scanned_depth(res.rig, rig, q, 650.0) - 650.0
+    assert np.all(np.abs(err) < 4.5 * s), (err, s)
+    # one parameter's variance alone: the propagated figure is the depth change of a 1-sigma step
+    prob = res.problem
+    for j in (0, prob.i_proj + 5, prob.i_proj + 3):  # fx, the projector's fx, its centre along x
+        sig = 0.3 if j == 0 else (0.5 if j == prob.i_proj + 5 else 0.05)
+        cov = np.zeros_like(res.cov)
+        cov[j, j] = sig ** 2
+        one = dataclasses.replace(res, cov=cov).depth_std(q, 650.0)
+        th = res.theta.copy()
+        th[j] += sig
+        direct = np.abs(scanned_depth(prob.rig(th), res.rig, q, 650.0) - 650.0)
+        np.testing.assert_allclose(one, direct, rtol=0.02, atol=1e-6)
+    # a point outside the projector's frame has no depth to be uncertain about
+    assert np.isnan(res.depth_std(np.array([[0.0, 0.0]]), 5000.0)[0])  # above the frame
+    out = res.depth_std(np.array([[0.0, 239.5], [639.0, 239.5]]), 300.0)
+    assert np.isnan(out[0]) and np.isfinite(out[1])  # left of it; inside
+    assert np.all(np.isnan(dataclasses.replace(res, cov=None).depth_std(q, 650.0)))

@@ -70,6 +70,16 @@ def test_calibration_recovers_the_small_rig(run, session):
     assert len(r["captures"]) == 5
     for c in r["captures"]:
         assert c["used"] or c["reason"]
+    assert r["corner_refiner"] == "symmetric"
+    # the depth uncertainty a scan inherits, and the depth error the estimated rig really has there
+    ds = cal.uncertainty["depth_std_mm"]
+    assert 400 < ds["distance_mm"] < 900 and 0 < ds["centre"] <= ds["max"] < 5.0
+    est = run.bundle.rig
+    q = np.array([[(rig.camera.width - 1) / 2, (rig.camera.height - 1) / 2]])
+    p = np.concatenate([rig.camera.normalize(q), [[1.0]]], axis=1) * ds["distance_mm"]
+    n, d = est.column_planes(rig.project_to_projector(p)[:, 0])
+    ray = np.concatenate([est.camera.normalize(q), [[1.0]]], axis=1)
+    assert abs(d[0] / (n[0] @ ray[0]) - ds["distance_mm"]) < 4.5 * ds["centre"]
 
 
 def test_save_run_writes_yaml_and_samples(run, tmp_path):
@@ -89,13 +99,14 @@ def test_cli_calibrate_then_report(session, tmp_path):
     r = _cli("calibrate", session, "-o", tmp_path / "calib.yaml", "--preview", tmp_path / "prev")
     assert r.returncode == 0, r.stderr
     assert "fx" in r.stdout and "baseline" in r.stdout and "pose_" in r.stderr
+    assert "depth uncertainty of a scan at" in r.stdout and "(symmetric refinement)" in r.stdout
     assert len(list((tmp_path / "prev").glob("pose_*.png"))) == 5
     r = _cli("report", tmp_path / "calib.yaml", "-o", tmp_path / "rep")
     assert r.returncode == 0, r.stderr
     for name in ("residual_field", "residual_histogram", "per_capture", "coverage", "plane_residuals"):
         assert (tmp_path / "rep" / f"{name}.png").stat().st_size > 1000
     summary = (tmp_path / "rep" / "summary.txt").read_text()
-    assert "worst captures" in summary
+    assert "worst captures" in summary and "depth uncertainty of a scan at" in summary
     # without the samples file the report still works, with fewer pictures and a note
     (tmp_path / "calib.residuals.npz").unlink()
     r = _cli("report", tmp_path / "calib.yaml", "-o", tmp_path / "rep2")
