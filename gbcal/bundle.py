@@ -20,6 +20,11 @@ Residuals, all in **camera pixels** so that the two kinds weigh comparably:
   the boundary's horizontal misplacement expressed in camera px.  ``stripe_weight`` scales
   these residuals (1 = a boundary sample is trusted like one corner coordinate).
 
+With a *camera prior* (a camera calibrated on its own, ``gbcal camera``: mean ``mu`` and standard
+deviations ``sigma`` of the camera unknowns) one more residual per camera unknown,
+``prior_scale_px * (theta - mu) / sigma``, appended after the stripes: with ``prior_scale_px`` the
+corners' noise (px), a prior parameter weighs as its variance says against the corners.
+
 The robust loss (``soft_l1`` by default, scale ``f_scale_px``) is scipy's.  The Jacobian is
 *structured*: every residual depends on the camera, on its own pose only, and (stripes) on the
 projector, so finite differences need only ``n_camera + 6 + 7`` residual evaluations (forward;
@@ -205,7 +210,8 @@ class BundleProblem:
     """Residuals and structured Jacobian of the joint refinement (see the module docstring)."""
 
     def __init__(self, data: BundleData, camera: Camera, rvecs: np.ndarray, tvecs: np.ndarray,
-                 rig: Rig, *, dist_model: str = "k1k2p1p2", stripe_weight: float = 1.0):
+                 rig: Rig, *, dist_model: str = "k1k2p1p2", stripe_weight: float = 1.0,
+                 camera_prior: "tuple[np.ndarray, np.ndarray] | None" = None, prior_scale_px: float = 0.05):
         if dist_model not in DIST_MODELS:
             raise GBError(f"unknown distortion model '{dist_model}'; choose one of {', '.join(DIST_MODELS)}")
         self.data = data
@@ -223,7 +229,20 @@ class BundleProblem:
         self.i_proj = self.n_cam + 6 * self.P
         self.n = self.i_proj + 7
         self.Nc, self.Ns = len(data.corner_pose), len(data.stripe_pose)
-        self.m = 2 * self.Nc + self.Ns
+        self.m_data = 2 * self.Nc + self.Ns       # corner and stripe rows; prior rows after them
+        self.prior_mu = self.prior_w = None
+        if camera_prior is not None:
+            mu, sd = (np.asarray(a, np.float64).ravel() for a in camera_prior)
+            if mu.shape != (self.n_cam,) or sd.shape != (self.n_cam,) or not np.all(np.isfinite(mu)) \
+                    or not np.all(sd > 0):
+                raise GBError(f"bundle: a camera prior needs {self.n_cam} finite means and positive standard "
+                              f"deviations ({', '.join(CAMERA_NAMES + tuple(DIST_NAMES[i] for i in self.free_dist))})")
+            if not prior_scale_px > 0:
+                raise GBError(f"bundle: prior_scale_px must be positive, got {prior_scale_px!r}")
+            self.prior_mu, self.prior_w = mu, float(prior_scale_px) / sd
+        self.n_prior = 0 if self.prior_mu is None else self.n_cam
+        self.prior_scale_px = float(prior_scale_px)
+        self.m = self.m_data + self.n_prior
         self.row_pose = np.concatenate([np.repeat(data.corner_pose, 2), data.stripe_pose]).astype(np.int64)
         self.stripe_weight = float(stripe_weight)
         theta = np.empty(self.n)
@@ -314,14 +333,17 @@ class BundleProblem:
         return np.stack([fx * xd[:, 0] + self.skew * xd[:, 1] + cx, fy * xd[:, 1] + cy], axis=1)
 
     def residuals(self, theta, rays=None) -> np.ndarray:
-        """(m,) = [corner (Nc*2) px, stripe (Ns) camera px * stripe_weight]."""
+        """(m,) = [corner (Nc*2) px, stripe (Ns) camera px * stripe_weight, camera prior (n_prior)]."""
         rc = (self.corner_projection(theta) - self.data.corner_uv).ravel() if self.Nc else np.zeros(0)
-        if not self.Ns:
-            return rc
-        if rays is None:
-            rays = self.rays(theta)
-        rs = (self._stripe_columns(theta, rays) - self.data.stripe_column) * self.inv_scale
-        return np.concatenate([rc, rs * self.stripe_weight])
+        parts = [rc]
+        if self.Ns:
+            if rays is None:
+                rays = self.rays(theta)
+            rs = (self._stripe_columns(theta, rays) - self.data.stripe_column) * self.inv_scale
+            parts.append(rs * self.stripe_weight)
+        if self.n_prior:
+            parts.append((theta[:self.n_cam] - self.prior_mu) * self.prior_w)
+        return np.concatenate(parts) if len(parts) > 1 else rc
 
     # -- Jacobian ------------------------------------------------------------------------------
     def _steps(self, theta):
@@ -361,16 +383,17 @@ class BundleProblem:
             dr, f = diff(j, warm)
             rr.append(rows_all), cc.append(np.full(self.m, j)), vv.append(dr / (f * h[j]))
         # pose block: component c of every pose at once (a residual sees only its own pose)
+        data_rows = slice(0, self.m_data)
         for c in range(6):
             idx = self.i_pose + 6 * np.arange(self.P) + c
-            dr, f = diff(idx, lambda t: rays)
-            rr.append(rows_all), cc.append(self.i_pose + 6 * self.row_pose + c)
+            dr, f = diff(idx, lambda t: rays, data_rows)
+            rr.append(rows_all[data_rows]), cc.append(self.i_pose + 6 * self.row_pose + c)
             vv.append(dr / (f * h[idx][self.row_pose]))
         # projector block: stripe residuals only
         if self.Ns:
-            srows = np.arange(2 * self.Nc, self.m)
+            srows = np.arange(2 * self.Nc, self.m_data)
             for j in range(self.i_proj, self.n):
-                dr, f = diff(j, lambda t: rays, slice(2 * self.Nc, None))
+                dr, f = diff(j, lambda t: rays, slice(2 * self.Nc, self.m_data))
                 rr.append(srows), cc.append(np.full(self.Ns, j)), vv.append(dr / (f * h[j]))
         J = coo_matrix((np.concatenate(vv), (np.concatenate(rr), np.concatenate(cc))), shape=(self.m, self.n))
         return J.tocsr()
@@ -422,7 +445,8 @@ def _blas_threads(n: int = 1):
 
 def refine(data: BundleData, camera: Camera, rvecs: np.ndarray, tvecs: np.ndarray, rig: Rig, *,
            dist_model: str = "k1k2p1p2", loss: str = "soft_l1", f_scale_px: float = 0.5,
-           stripe_weight: float = 1.0, reject_sigma: float = 5.0, max_nfev: int = 60, log=None) -> BundleResult:
+           stripe_weight: float = 1.0, reject_sigma: float = 5.0, max_nfev: int = 60, log=None,
+           camera_prior: "tuple[np.ndarray, np.ndarray] | None" = None, prior_scale_px: float = 0.05) -> BundleResult:
     """Refine camera, board poses and projector together (see the module docstring).
 
     camera : initial intrinsics; rvecs, tvecs : (P, 3) initial board poses; rig : initial
@@ -432,21 +456,29 @@ def refine(data: BundleData, camera: Camera, rvecs: np.ndarray, tvecs: np.ndarra
         gross outliers (a wrong Gray-code index) end with no influence at all rather than the
         robust loss's bounded one.
     log : callable(str) for progress lines (default: stderr).
+    camera_prior : ``(mu, sigma)`` of the camera unknowns (fx, fy, cx, cy, then the model's free
+        distortion terms), e.g. from a camera calibrated on its own; ``prior_scale_px`` the corners'
+        noise per coordinate (px) that puts the prior on the residuals' scale (module docstring).
     """
     from scipy.optimize import least_squares
 
     log = log or (lambda s: print(s, file=sys.stderr))
     if loss not in ("linear", "soft_l1", "huber", "cauchy", "arctan"):
         raise GBError(f"unknown robust loss '{loss}'")
-    prob = BundleProblem(data, camera, rvecs, tvecs, rig, dist_model=dist_model, stripe_weight=stripe_weight)
+    prob = BundleProblem(data, camera, rvecs, tvecs, rig, dist_model=dist_model, stripe_weight=stripe_weight,
+                         camera_prior=camera_prior, prior_scale_px=prior_scale_px)
     if prob.m < prob.n:
         raise GBError(f"bundle: {prob.m} residuals cannot determine {prob.n} unknowns; capture more poses")
     t0 = time.perf_counter()
     r0 = prob.residuals(prob.theta0)
     log(f"  bundle: {prob.n} unknowns, {prob.Nc} corners, {prob.Ns} stripe samples, "
-        f"start RMS {np.sqrt(np.mean(r0 ** 2)):.3f} px")
+        f"start RMS {np.sqrt(np.mean(r0[:prob.m_data] ** 2)):.3f} px")
     nc2 = 2 * prob.Nc
+    srow = slice(nc2, prob.m_data)  # the stripe rows
     rows = np.ones(prob.m, bool)
+
+    # the prior's rows (last) are not measurements that can be outliers: quadratic whatever the loss
+    loss_fn = loss if not prob.n_prior or loss == "linear" else _loss_with_quadratic_tail(loss, prob.n_prior)
 
     def solve(theta, rows):
         # the Jacobian is built sparse; with few unknowns (< DENSE_MAX_UNKNOWNS: ~60 poses) the
@@ -455,7 +487,7 @@ def refine(data: BundleData, camera: Camera, rvecs: np.ndarray, tvecs: np.ndarra
         sel = np.flatnonzero(rows)
         jac = (lambda th: prob.jacobian(th)[sel].toarray()) if dense else (lambda th: prob.jacobian(th)[sel])
         with np.errstate(all="ignore"), _blas_threads(1):  # trial steps may overshoot; trf shrinks them
-            return least_squares(lambda th: prob.residuals(th)[sel], theta, jac=jac, method="trf", loss=loss,
+            return least_squares(lambda th: prob.residuals(th)[sel], theta, jac=jac, method="trf", loss=loss_fn,
                                  f_scale=f_scale_px, x_scale="jac", max_nfev=max_nfev,
                                  tr_solver="exact" if dense else "lsmr", xtol=1e-10, ftol=1e-10)
 
@@ -463,12 +495,12 @@ def refine(data: BundleData, camera: Camera, rvecs: np.ndarray, tvecs: np.ndarra
     nfev = int(sol.nfev)
     n_rejected = 0
     if reject_sigma > 0 and prob.Ns:
-        rs = prob.residuals(sol.x)[nc2:]
+        rs = prob.residuals(sol.x)[srow]
         thr = reject_sigma * max(_robust_sigma(rs), 1e-6)
         bad = np.abs(rs) > thr
         if bad.any():
             n_rejected = int(bad.sum())
-            rows[nc2:] = ~bad
+            rows[srow] = ~bad
             log(f"  bundle: {n_rejected} stripe samples beyond {reject_sigma:g} sigma ({thr:.3f} px) dropped; "
                 "solving again")
             sol = solve(sol.x, rows)
@@ -477,19 +509,55 @@ def refine(data: BundleData, camera: Camera, rvecs: np.ndarray, tvecs: np.ndarra
     r = prob.residuals(theta)
     dt = time.perf_counter() - t0
     rc = r[:nc2].reshape(-1, 2)
-    rs = r[nc2:] / prob.stripe_weight
+    rs = r[srow] / prob.stripe_weight
     rs_proj = rs / prob.inv_scale
-    inl = rows[nc2:].copy()
+    inl = rows[srow].copy()
     std, pose_std, sigma, cov = _uncertainty(prob, theta, r, rows)
     log(f"  bundle: {nfev} evaluations, {dt:.1f} s, corner RMS {_rms(np.linalg.norm(rc, axis=1)):.3f} px, stripe RMS "
         f"{_rms(rs[inl]):.3f} px ({_rms(rs_proj[inl]):.3f} projector px) over inliers; {sol.message}")
     info = {"nfev": nfev, "status": int(sol.status), "message": str(sol.message), "seconds": dt,
             "loss": loss, "f_scale_px": f_scale_px, "dist_model": dist_model, "stripe_weight": stripe_weight,
             "reject_sigma": reject_sigma, "stripe_rejected": n_rejected,
-            "start_rms_px": float(np.sqrt(np.mean(r0 ** 2)))}
+            "start_rms_px": float(np.sqrt(np.mean(r0[:prob.m_data] ** 2)))}
+    if prob.n_prior:
+        z = (theta[:prob.n_cam] - prob.prior_mu) * prob.prior_w / prob.prior_scale_px
+        info["camera_prior_z"] = dict(zip(list(CAMERA_NAMES) + [DIST_NAMES[i] for i in prob.free_dist], z.tolist()))
     rv, tv = prob.poses(theta)
     return BundleResult(prob.rig(theta), rv.copy(), tv.copy(), rc, rs, rs_proj, inl, std, pose_std, sigma, info,
                         theta=theta, cov=cov, problem=prob)
+
+
+def _robust_rho(name: str, z: np.ndarray) -> np.ndarray:
+    """scipy's robust losses: (3, n) ``[rho, rho', rho'']`` of ``z = (r / f_scale)^2``."""
+    out = np.empty((3, z.size))
+    if name == "soft_l1":
+        t = 1.0 + z
+        out[0], out[1], out[2] = 2.0 * (np.sqrt(t) - 1.0), t ** -0.5, -0.5 * t ** -1.5
+    elif name == "huber":
+        big = z > 1.0
+        sq = np.sqrt(np.where(big, z, 1.0))
+        out[0] = np.where(big, 2.0 * sq - 1.0, z)
+        out[1] = np.where(big, 1.0 / sq, 1.0)
+        out[2] = np.where(big, -0.5 / (sq * np.where(big, z, 1.0)), 0.0)
+    elif name == "cauchy":
+        t = 1.0 + z
+        out[0], out[1], out[2] = np.log1p(z), 1.0 / t, -1.0 / t ** 2
+    elif name == "arctan":
+        t = 1.0 + z ** 2
+        out[0], out[1], out[2] = np.arctan(z), 1.0 / t, -2.0 * z / t ** 2
+    else:  # linear
+        out[0], out[1], out[2] = z, 1.0, 0.0
+    return out
+
+
+def _loss_with_quadratic_tail(name: str, n_tail: int):
+    """A loss for ``least_squares``: ``name`` on every residual but the last ``n_tail``, which
+    stay quadratic (the camera prior's rows)."""
+    def rho(z):
+        out = _robust_rho(name, z)
+        out[0, -n_tail:], out[1, -n_tail:], out[2, -n_tail:] = z[-n_tail:], 1.0, 0.0
+        return out
+    return rho
 
 
 def _rms(a) -> float:
@@ -509,7 +577,7 @@ def _uncertainty(prob: BundleProblem, theta: np.ndarray, r: np.ndarray, rows: np
     nc2 = 2 * prob.Nc
     w = np.zeros(prob.m)
     sigma = {}
-    for name, sl in (("corner_px", slice(0, nc2)), ("stripe_px", slice(nc2, prob.m))):
+    for name, sl in (("corner_px", slice(0, nc2)), ("stripe_px", slice(nc2, prob.m_data))):
         part = r[sl]
         if not part.size:
             continue
@@ -519,6 +587,8 @@ def _uncertainty(prob: BundleProblem, theta: np.ndarray, r: np.ndarray, rows: np
         s = max(s, 1e-9)
         sigma[name] = s
         w[sl] = np.where(inl, 1.0 / s, 0.0)
+    if prob.n_prior:  # (theta - mu) / sigma exactly: its rows carry prior_scale_px
+        w[prob.m_data:] = 1.0 / prob.prior_scale_px
     from scipy.sparse import diags
 
     Jw = diags(w) @ J

@@ -93,7 +93,8 @@ def _read(session: Session, pose: int, name: str) -> np.ndarray:
 def calibrate_session(session_dir, *, model: str = "k1k2p1p2", loss: str = "soft_l1", f_scale_px: float = 0.5,
                       stripe_weight: float = 1.0, max_samples_per_capture: int = 20000,
                       min_captures: int = MIN_CAPTURES, log=None, seed: int = 0,
-                      corner_refiner: str = "symmetric") -> CalibrationRun:
+                      corner_refiner: str = "symmetric", camera_prior: Calibration | None = None,
+                      camera_prior_name: str = "camera file") -> CalibrationRun:
     """Calibrate the rig from a capture session folder (module docstring).
 
     model : camera distortion model (:data:`gbcal.bundle.DIST_MODELS`).
@@ -102,6 +103,11 @@ def calibrate_session(session_dir, *, model: str = "k1k2p1p2", loss: str = "soft
     max_samples_per_capture : boundary samples kept per capture (random, seeded), for speed.
     corner_refiner : :data:`gbcal.board.CORNER_REFINERS` (``symmetric``, the default, or
         ``cornersubpix``), recorded in the calibration's ``residuals``.
+    camera_prior : a camera calibrated on its own (``gbcal camera``: ``camera``, ``residuals.model``
+        and ``uncertainty.camera_std``), named ``camera_prior_name`` in messages.  The bundle then
+        holds the camera to it within its standard deviations (:func:`gbcal.bundle.refine`), with
+        that file's distortion model (``model`` is ignored): a camera calibrated with a big board
+        close up pins fx, and so the depth scale, far better than the rig's small board does.
     Raises GBError for unreadable/missing/mis-sized frames, too few usable captures, or an
     unobservable capture set.
     """
@@ -111,10 +117,17 @@ def calibrate_session(session_dir, *, model: str = "k1k2p1p2", loss: str = "soft
 
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     check_refiner(corner_refiner)
+    if camera_prior is not None:
+        model = prior_model(camera_prior, camera_prior_name)
     t_start = time.perf_counter()
     timings = {}
     session = load_session(session_dir)
     spec = pattern_of_session(session)
+    if camera_prior is not None and tuple(camera_prior.camera.size) != tuple(session.camera_size):
+        c = camera_prior.camera
+        raise GBError(f"{camera_prior_name} is for a {c.width}x{c.height} camera but session {session.root} was "
+                      f"captured at {session.camera_size[0]}x{session.camera_size[1]}; calibrate the camera at "
+                      "the resolution you scan with")
     board = Board(session.board_cols, session.board_rows, session.square_mm)
     names = [p.name for p in session.poses]
     captures = [CaptureInfo(n) for n in names]
@@ -202,8 +215,23 @@ def calibrate_session(session_dir, *, model: str = "k1k2p1p2", loss: str = "soft
                       s_pose[keep], s_uv[keep], spec.boundary_column(s_k[keep]), len(used))
     rv0 = np.array([rotation_vector(cam_res.views[i].R) for i in used])
     tv0 = np.array([cam_res.views[i].t for i in used])
+    prior = None
+    if camera_prior is not None:
+        prior = prior_arrays(camera_prior, model, camera_prior_name)
+        # the session's own camera (corners alone) against the file: the sigma of their difference
+        from .bundle import CAMERA_NAMES, DIST_MODELS, DIST_NAMES
+
+        cam_names = list(CAMERA_NAMES) + [DIST_NAMES[i] for i in DIST_MODELS[model]]
+        own = np.r_[cam0.K[0, 0], cam0.K[1, 1], cam0.K[0, 2], cam0.K[1, 2], cam0.dist[list(DIST_MODELS[model])]]
+        own_sd = np.array([float(cam_res.std.get(n, np.nan)) for n in cam_names])
+        session_z = {n: round(float(v), 2) for n, v in zip(cam_names, (own - prior[0]) / np.hypot(own_sd, prior[1]))
+                     if np.isfinite(v)}
+        scale = max(float(cam_res.rms_px) / np.sqrt(2.0), 0.01)  # corner noise per coordinate
+        log(f"  camera prior from {camera_prior_name}: fx {prior[0][0]:.2f} ± {prior[1][0]:.3f}, fy {prior[0][1]:.2f} "
+            f"± {prior[1][1]:.3f} px (model {model}; corner noise {scale:.3f} px per coordinate)")
     res = refine(data, cam0, rv0, tv0, rig0, dist_model=model, loss=loss, f_scale_px=f_scale_px,
-                 stripe_weight=stripe_weight, log=log)
+                 stripe_weight=stripe_weight, log=log, camera_prior=prior,
+                 prior_scale_px=scale if prior is not None else 0.05)
     timings["bundle_s"] = time.perf_counter() - t0
 
     # 5. calibration
@@ -250,6 +278,9 @@ def calibrate_session(session_dir, *, model: str = "k1k2p1p2", loss: str = "soft
         "captures_used": len(used), "captures_total": len(names),
         "camera_model": model, "corner_refiner": corner_refiner, "loss": loss, "f_scale_px": f_scale_px,
         "stripe_weight": stripe_weight,
+        **({"camera_prior": {"file": camera_prior_name, "session_z": session_z,
+                             "z": {k: round(float(v), 3) for k, v in res.info["camera_prior_z"].items()}}}
+           if prior is not None else {}),
         "stripe_residual_unit": "camera px along the row (projector px / |d column / d u|)",
         "captures": per,
     }
@@ -319,6 +350,37 @@ def save_run(path, run: CalibrationRun) -> tuple[Path, Path]:
     return path, npz
 
 
+def prior_model(camera_file: Calibration, name: str) -> str:
+    """The distortion model a camera file was calibrated with (``residuals.model``), checked."""
+    from .bundle import DIST_MODELS
+
+    m = (camera_file.residuals or {}).get("model")
+    if m not in DIST_MODELS:
+        raise GBError(f"{name}: residuals.model must name the camera's distortion model ({', '.join(DIST_MODELS)}), "
+                      f"got {m!r}; write the file with 'gbcal camera'")
+    return m
+
+
+def prior_arrays(camera_file: Calibration, model: str, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(mu, sigma)`` of the bundle's camera unknowns (fx, fy, cx, cy, then ``model``'s free
+    distortion terms) from a camera file's ``camera`` and ``uncertainty.camera_std``."""
+    from .bundle import CAMERA_NAMES, DIST_MODELS, DIST_NAMES
+
+    cam = camera_file.camera
+    free = DIST_MODELS[model]
+    names = list(CAMERA_NAMES) + [DIST_NAMES[i] for i in free]
+    mu = np.r_[cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2], cam.dist[list(free)]]
+    std = (camera_file.uncertainty or {}).get("camera_std") or {}
+    try:
+        sd = np.array([float(std[n]) for n in names])
+    except (KeyError, TypeError, ValueError):
+        raise GBError(f"{name}: uncertainty.camera_std must give the standard deviation of each of "
+                      f"{', '.join(names)}; write the file with 'gbcal camera'") from None
+    if not np.all(np.isfinite(sd) & (sd > 0)):
+        raise GBError(f"{name}: uncertainty.camera_std must be positive and finite for {', '.join(names)}")
+    return mu, sd
+
+
 def depth_uncertainty(res, board_xyz: np.ndarray) -> tuple[float, np.ndarray]:
     """(distance mm, (26,) mm): the 1-sigma depth uncertainty a scan inherits from the
     calibration (:meth:`gbcal.bundle.BundleResult.depth_std`) at the median distance of the
@@ -363,6 +425,12 @@ def summary_lines(run: CalibrationRun) -> list[str]:
                f"{pj['baseline_mm']:.2f} ± {cal.uncertainty.get('baseline_std_mm', float('nan')):.2f} mm; "
                f"{cal.n_planes} light planes (boundaries {cal.plane_index[0]}..{cal.plane_index[-1]}, normals ± "
                f"{cal.uncertainty.get('plane_normal_std_deg', {}).get('max', float('nan')):.4f} deg at most)")
+    pr = r.get("camera_prior")
+    if pr:
+        far = {k: v for k, v in (pr.get("session_z") or {}).items() if abs(v) > 3.0}
+        out.append(f"camera held to {pr['file']} (within its standard deviations)" + (
+            "; the session disagrees with it on " + ", ".join(f"{k} ({v:+.1f} sigma)" for k, v in far.items())
+            + ": was the lens refocused or zoomed since the camera was calibrated?" if far else ""))
     ds = cal.uncertainty.get("depth_std_mm") or {}
     if ds.get("centre") is not None:
         mx = ds.get("max")

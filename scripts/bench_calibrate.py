@@ -8,7 +8,12 @@ then the same plane at 650 mm scanned end to end (`Scanner`, decoded columns), w
 calibration's own error shows (the noise above hides most of it).
 
     python scripts/bench_calibrate.py [--session DIR] [--poses 12] [--preset typical] [--max-samples N]
-                                      [--corners symmetric|cornersubpix]
+                                      [--corners symmetric|cornersubpix] [--camera-captures N]
+
+With --camera-captures N the camera is first calibrated on its own (`gbcal camera`'s fit) from N
+simulated captures of a bigger board close up in room light (11x8 inner corners of 25 mm at
+420-620 mm, tilted 20-45 degrees), and the rig is calibrated again holding the camera to it
+(`gbcal calibrate --camera`); both planes are printed.
 
 Without --session a session is rendered into a temporary folder first (minutes; not timed).
 """
@@ -34,6 +39,8 @@ def main(argv=None) -> int:
     p.add_argument("--max-samples", type=int, default=20000)
     p.add_argument("--corners", default="symmetric", choices=["symmetric", "cornersubpix"],
                    help="corner refiner (gbcal calibrate --corners)")
+    p.add_argument("--camera-captures", type=int, default=0, metavar="N",
+                   help="also calibrate with a camera calibrated on its own from N captures of a big board")
     args = p.parse_args(argv)
 
     from gbcal.calibrate import calibrate_session
@@ -96,9 +103,68 @@ def main(argv=None) -> int:
     print(f"plane at 650 mm scanned end to end (decoded columns): depth RMS {out[0][0]:.4f} mm (estimated, mean "
           f"{out[0][1]:+.4f}) vs {out[1][0]:.4f} mm (true); the calibration states +- {ds.get('centre', float('nan')):.4f} "
           f"mm at {ds.get('distance_mm', float('nan')):.0f} mm (1 sigma, image centre); corners refined by {args.corners}")
+    if args.camera_captures > 0:
+        t0 = time.perf_counter()
+        camera_file = camera_alone(rig, args.camera_captures, args.seed, args.preset, args.corners)
+        K = camera_file.camera.K
+        st = camera_file.uncertainty["camera_std"]
+        print(f"camera alone from {args.camera_captures} captures of an 11x8 board of 25 mm ({time.perf_counter() - t0:.0f} "
+              f"s with rendering): fx {K[0, 0] - K0[0, 0]:+.3f} ± {st['fx']:.3f} px, fy {K[1, 1] - K0[1, 1]:+.3f} ± "
+              f"{st['fy']:.3f} px (against the truth), RMS {camera_file.residuals['camera_rms_px']:.3f} px")
+        run2 = calibrate_session(session, max_samples_per_capture=args.max_samples, log=lambda s: None,
+                                 corner_refiner=args.corners, camera_prior=camera_file,
+                                 camera_prior_name="the camera calibrated alone")
+        cal2 = run2.calibration
+        s = Scanner(cal2).scan(rr.image)
+        dz = (s.xyz[..., 2] - rr.point[..., 2])[s.valid & keep]
+        ds2 = cal2.uncertainty.get("depth_std_mm") or {}
+        K2 = cal2.camera.K
+        print(f"with the camera held to it: fx {K2[0, 0] - K0[0, 0]:+.3f} px, plane at 650 mm depth RMS "
+              f"{np.sqrt(np.mean(dz ** 2)):.4f} mm (mean {np.mean(dz):+.4f}); the calibration states +- "
+              f"{ds2.get('centre', float('nan')):.4f} mm at {ds2.get('distance_mm', float('nan')):.0f} mm; prior z "
+              + " ".join(f"{k} {v:+.1f}" for k, v in cal2.residuals["camera_prior"]["z"].items()))
     if tmp:
         tmp.cleanup()
     return 0
+
+
+def camera_alone(rig, n: int, seed: int, preset: str, corners: str):
+    """A camera-only calibration (what `gbcal camera` writes) from ``n`` simulated captures of an
+    11x8 board of 25 mm squares in room light (ambient as bright as the projector's white)."""
+    import dataclasses
+
+    from gbcal.board import Board, detect_with_reason
+    from gbcal.bundle import rodrigues
+    from gbcal.intrinsics import calibrate_camera
+    from gbscan import sim
+    from gbscan.calibfile import Calibration
+
+    board = Board(11, 8, 25.0)
+    cond = dataclasses.replace(sim.preset(preset), ambient_rgb=(1.0, 1.0, 1.0))
+    black = np.zeros((rig.projector.height, rig.projector.width, 3), np.uint8)
+    rng = np.random.default_rng([seed, 77])
+    cam = rig.camera
+    obj = board.object_points()
+    centre = obj.mean(axis=0)
+    dets = []
+    while len(dets) < n:
+        tilt, phi = np.radians(rng.uniform(20, 45)), rng.uniform(0, 2 * np.pi)
+        R = rodrigues(np.array([tilt * np.sin(phi), tilt * np.cos(phi), np.radians(rng.uniform(-20, 20))]))
+        z = rng.uniform(420, 620)
+        c = np.array([rng.uniform(-0.12, 0.12) * z, rng.uniform(-0.08, 0.08) * z, z])
+        t = c - R @ centre
+        q = cam.project(obj @ R.T + t)
+        if not (np.all(np.isfinite(q)) and q[:, 0].min() > 12 and q[:, 1].min() > 12
+                and q[:, 0].max() < cam.width - 13 and q[:, 1].max() < cam.height - 13):
+            continue
+        img = sim.render(rig, sim.scenes.board(board.cols, board.rows, board.square_mm, R, t), black, cond,
+                         seed=int(rng.integers(1 << 30))).image
+        det, _ = detect_with_reason(img, board, refiner=corners)
+        if det is not None:
+            dets.append(det)
+    res = calibrate_camera(dets, board, cam.size, model="k1k2p1p2")
+    return Calibration(res.camera, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0),
+                       residuals=res.residuals_dict(), uncertainty=res.uncertainty_dict())
 
 
 if __name__ == "__main__":

@@ -62,7 +62,8 @@ def test_warm_started_newton_inverts_distortion():
     np.testing.assert_allclose(x, x_ref, atol=1e-13)
 
 
-def test_structured_jacobian_matches_finite_differences():
+@pytest.mark.parametrize("with_prior", [False, True])
+def test_structured_jacobian_matches_finite_differences(with_prior):
     from scipy.optimize._numdiff import approx_derivative
 
     rig = paper_rig()
@@ -70,7 +71,11 @@ def test_structured_jacobian_matches_finite_differences():
     cols = np.arange(5, 125, 12) * 8 - 0.5
     data = synthetic_data(rig, rv, tv, cols=COLS, rows=ROWS, square_mm=SQ, columns=cols, samples_per_line=4)
     cam0, rig0 = _perturbed(rig)
-    prob = BundleProblem(data, cam0, rv + 0.01, tv + 1.0, rig0, dist_model="k1k2p1p2k3")
+    K = rig.camera.K
+    prior = (np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], rig.camera.dist], np.r_[0.1, 0.1, 0.2, 0.2, [1e-3] * 5])
+    prob = BundleProblem(data, cam0, rv + 0.01, tv + 1.0, rig0, dist_model="k1k2p1p2k3",
+                         camera_prior=prior if with_prior else None, prior_scale_px=0.04)
+    assert prob.m == 2 * prob.Nc + prob.Ns + (prob.n_cam if with_prior else 0)
     th = prob.theta0
     J_fd = approx_derivative(prob.residuals, th, method="3-point")
     scale = np.abs(J_fd).max(axis=0) + 1e-12
@@ -79,11 +84,14 @@ def test_structured_jacobian_matches_finite_differences():
     J = prob.jacobian(th).toarray()  # forward differences: what the solver uses
     assert np.max(np.abs(J - J_fd) / scale) < 1e-4
     # the structure: a residual never depends on another pose's parameters
-    pose_cols = J[:, prob.i_pose:prob.i_proj].reshape(prob.m, prob.P, 6)
-    other = np.ones((prob.m, prob.P), bool)
-    other[np.arange(prob.m), prob.row_pose] = False
+    pose_cols = J[:prob.m_data, prob.i_pose:prob.i_proj].reshape(prob.m_data, prob.P, 6)
+    other = np.ones((prob.m_data, prob.P), bool)
+    other[np.arange(prob.m_data), prob.row_pose] = False
     assert np.all(pose_cols[other] == 0)
     assert np.all(J[:2 * prob.Nc, prob.i_proj:] == 0)  # corners do not see the projector
+    if with_prior:  # a prior row sees its own camera unknown only, by prior_scale_px / sigma
+        np.testing.assert_allclose(J[prob.m_data:], np.c_[np.diag(0.04 / prior[1]), np.zeros((9, prob.n - 9))],
+                                   rtol=1e-6, atol=1e-9)
 
 
 def test_exact_recovery_on_clean_observations():
@@ -208,3 +216,53 @@ def test_depth_std_bounds_the_scanned_depth_error_and_matches_a_direct_perturbat
     out = res.depth_std(np.array([[0.0, 239.5], [639.0, 239.5]]), 300.0)
     assert np.isnan(out[0]) and np.isfinite(out[1])  # left of it; inside
     assert np.all(np.isnan(dataclasses.replace(res, cov=None).depth_std(q, 650.0)))
+
+
+def test_a_camera_prior_pins_the_camera_and_is_reported():
+    rig, cols, free = _noisy_refinement()
+    rv, tv = _poses(8, seed=5)
+    data = synthetic_data(rig, rv, tv, cols=COLS, rows=ROWS, square_mm=SQ, columns=cols, samples_per_line=12,
+                          corner_noise_px=0.1, stripe_noise_px=0.05, seed=7)
+    cam0, rig0 = _perturbed(rig)
+    K0 = rig.camera.K
+    names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
+    sd = np.array([free.std[n] for n in names]) / 10.0  # a camera known ten times better
+    for shift in (0.0, 1.0):  # the prior at the truth; then one of its sigmas off in fx
+        mu = np.r_[K0[0, 0] + shift * sd[0], K0[1, 1], K0[0, 2], K0[1, 2], rig.camera.dist[:4]]
+        res = refine(data, cam0, rv, tv, rig0, log=lambda s: None, camera_prior=(mu, sd), prior_scale_px=0.1)
+        K = res.rig.camera.K
+        assert res.std["fx"] < 0.2 * free.std["fx"] and res.std["cx"] < 0.2 * free.std["cx"], (res.std, free.std)
+        assert abs(K[0, 0] - mu[0]) < 2.5 * sd[0] and abs(K[0, 2] - mu[2]) < 2.5 * sd[2]
+        z = res.info["camera_prior_z"]
+        assert set(z) == set(names) and abs(z["fx"]) < 2.5
+        # the rows the summaries read are still the data's
+        assert res.corner_residual_px.shape == (free.corner_residual_px.shape[0], 2)
+        assert res.stripe_residual_px.shape == free.stripe_residual_px.shape
+        assert res.sigma["corner_px"] == pytest.approx(0.1, rel=0.15)
+    # the depth a scan inherits is known better too
+    q = np.array([[319.5, 239.5]])
+    assert res.depth_std(q, 650.0)[0] < 0.7 * free.depth_std(q, 650.0)[0]
+    with pytest.raises(GBError, match="camera prior needs 8 finite means"):
+        refine(data, cam0, rv, tv, rig0, log=lambda s: None, camera_prior=(mu[:4], sd[:4]))
+
+
+@pytest.mark.parametrize("name", ["soft_l1", "huber", "cauchy", "arctan", "linear"])
+def test_the_losses_match_scipys_and_the_prior_rows_stay_quadratic(name):
+    from scipy.optimize import least_squares
+
+    from gbcal.bundle import _loss_with_quadratic_tail, _robust_rho
+
+    rng = np.random.default_rng(0)
+    x = np.linspace(0, 1, 40)
+    y = 2.0 * x + 1.0 + rng.normal(0, 0.05, x.size)
+    y[::7] += 3.0  # outliers
+
+    def fun(p):
+        return np.r_[p[0] * x + p[1] - y, 3.0 * (p[0] - 2.5)]  # last: a "prior" 0.5 off the data's slope
+
+    ours = least_squares(fun, [1.0, 0.0], loss=lambda z: _robust_rho(name, z), f_scale=0.1).x
+    ref = least_squares(fun, [1.0, 0.0], loss=name, f_scale=0.1).x
+    np.testing.assert_allclose(ours, ref, atol=1e-7)
+    tail = least_squares(fun, [1.0, 0.0], loss=_loss_with_quadratic_tail(name, 1), f_scale=0.1).x
+    # quadratic, the prior row pulls the slope well towards 2.5 (a robust loss caps its pull)
+    assert tail[0] > 2.1 and (name == "linear" or tail[0] > ref[0] + 0.05), (tail, ref)

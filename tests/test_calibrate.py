@@ -213,3 +213,66 @@ def test_paper_geometry_accuracy(tmp_path_factory):
         e = p[..., 2] - z_true
         rms.append(float(np.sqrt(np.nanmean(e ** 2))))
     assert rms[0] < 1.3 * rms[1], rms
+
+
+def _camera_file(camera, std, model="k1k2p1p2"):
+    """A camera-only calibration file's contents (what 'gbcal camera' writes) for ``camera``."""
+    from gbscan.calibfile import Calibration
+
+    names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+    return Calibration(camera, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0),
+                       residuals={"camera_rms_px": 0.03, "model": model},
+                       uncertainty={"camera_std": {n: float(s) for n, s in zip(names, std)}})
+
+
+def test_a_camera_prior_holds_the_camera_and_is_recorded(session, run, tmp_path):
+    from gbcal.calibrate import calibrate_session, summary_lines
+    from gbcal.simsession import load_truth
+
+    rig = load_truth(session)["rig"]
+    free = run.calibration
+    # the true camera, known to 0.02 px (fx, fy), 0.05 px (cx, cy), 1e-4 (distortion)
+    std = [0.02, 0.02, 0.05, 0.05, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5]
+    held = calibrate_session(session, log=lambda s: None, camera_prior=_camera_file(rig.camera, std),
+                             camera_prior_name="camera file truth.yaml")
+    K, K0, Kf = held.calibration.camera.K, rig.camera.K, free.camera.K
+    assert abs(K[0, 0] - K0[0, 0]) < 0.1 and abs(K[1, 1] - K0[1, 1]) < 0.1, (K, Kf)  # 5 sigma of the prior
+    assert abs(K[0, 2] - K0[0, 2]) < 0.25 and abs(K[1, 2] - K0[1, 2]) < 0.25
+    assert [c["capture"] for c in held.calibration.residuals["captures"]] == [f"pose_{i:03d}" for i in range(5)]
+    assert list(held.samples["used_captures"]) == list(run.samples["used_captures"])
+    pr = held.calibration.residuals["camera_prior"]
+    assert pr["file"] == "camera file truth.yaml" and set(pr["z"]) == {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"}
+    ds, ds_free = held.calibration.uncertainty["depth_std_mm"], free.uncertainty["depth_std_mm"]
+    assert ds["centre"] < 0.5 * ds_free["centre"], (ds, ds_free)
+    assert any("camera held to camera file truth.yaml" in line for line in summary_lines(held))
+    # a prior far from what the session sees is reported, sigma by sigma
+    off = rig.camera.scaled(1.0)
+    off.K[0, 0] += 15.0  # a refocused lens
+    far = calibrate_session(session, log=lambda s: None, camera_prior=_camera_file(off, std))
+    assert any("disagrees with it on fx" in line for line in summary_lines(far)), far.calibration.residuals["camera_prior"]
+
+
+def test_a_camera_prior_that_cannot_apply_is_refused(session, tmp_path):
+    from gbcal.calibrate import calibrate_session
+    from gbscan.calibfile import save_calibration
+
+    from gbscan import sim
+
+    std = [0.1] * 4 + [1e-3] * 5
+    big = sim.paper_rig().camera  # 640x480: the session is 320x240
+    with pytest.raises(GBError, match="640x480 camera but session .* 320x240"):
+        calibrate_session(session, log=lambda s: None, camera_prior=_camera_file(big, std))
+    small = _small_rig().camera
+    with pytest.raises(GBError, match="uncertainty.camera_std must give .* k1, k2, p1, p2"):
+        calibrate_session(session, log=lambda s: None, camera_prior=_camera_file(small, std[:4]))
+    with pytest.raises(GBError, match="residuals.model must name"):
+        calibrate_session(session, log=lambda s: None, camera_prior=_camera_file(small, std, model="fisheye"))
+    # the command: one line naming the file and the fault, nothing written
+    cam = tmp_path / "camera.yaml"
+    save_calibration(cam, _camera_file(small, std[:4]))
+    out = tmp_path / "c.yaml"
+    _fails(["calibrate", session, "-o", out, "--camera", cam], out, str(cam), "uncertainty.camera_std")
+    save_calibration(cam, _camera_file(small, std))
+    _fails(["calibrate", session, "-o", out, "--camera", cam, "--model", "k1k2p1p2k3"], out,
+           "--model k1k2p1p2k3 differs", "k1k2p1p2")
+    _fails(["calibrate", session, "-o", out, "--camera", tmp_path / "missing.yaml"], out, "missing.yaml")

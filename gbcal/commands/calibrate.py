@@ -6,6 +6,11 @@ is calibrated from the corners, one plane is fitted per stripe boundary, a pinho
 fitted to the planes, and one robust bundle adjustment refines camera, board poses and projector
 against corner and stripe residuals together.  Writes CALIB (YAML) and CALIB's
 <stem>.residuals.npz beside it (for 'gbcal report'); nothing is written if the run fails.
+
+The depth scale of everything the scanner measures is the camera's fx, which the rig's small board
+pins only so well (the summary prints the depth uncertainty that leaves). With --camera CAMERA.yaml
+(from 'gbcal camera' on captures of a bigger board close up, in room light) the bundle holds the
+camera to that file within its standard deviations, and says if the session disagrees with it.
 """
 from __future__ import annotations
 
@@ -27,8 +32,12 @@ def add_arguments(p):
     p.add_argument("session", help="capture session folder (session.yaml + pose_NNN/)")
     p.add_argument("-o", "--output", required=True, help="calibration file to write (YAML)")
     p.add_argument("--preview", metavar="DIR", help="also write per-capture pictures (board, boundary samples) here")
-    p.add_argument("--model", default="k1k2p1p2", choices=["k1k2p1p2k3", "k1k2p1p2", "k1k2", "k1", "none"],
-                   help="camera distortion model (default k1k2p1p2: k3 fixed at 0)")
+    p.add_argument("--model", default=None, choices=["k1k2p1p2k3", "k1k2p1p2", "k1k2", "k1", "none"],
+                   help="camera distortion model (default k1k2p1p2: k3 fixed at 0; with --camera, that file's)")
+    p.add_argument("--camera", metavar="CAMERA.yaml",
+                   help="a camera calibrated on its own ('gbcal camera', e.g. a big board close up in room light): "
+                        "the bundle holds the camera to it within its standard deviations, which pins fx and so "
+                        "the depth scale better than the rig's board alone")
     add_corners_argument(p)
     p.add_argument("--loss", default="soft_l1", choices=["soft_l1", "huber", "cauchy", "linear"],
                    help="robust loss of the bundle adjustment (default soft_l1)")
@@ -53,9 +62,20 @@ def run(args) -> int:
     out = Path(args.output)
     if not out.parent.is_dir():
         raise GBError(f"cannot write {out}: folder {out.parent} does not exist (create it first)")
-    run_ = calibrate_session(args.session, model=args.model, loss=args.loss, f_scale_px=args.f_scale_px,
+    prior = None
+    if args.camera:
+        from gbscan.calibfile import load_calibration
+
+        from ..calibrate import prior_model
+
+        prior = load_calibration(args.camera, require_planes=False)
+        if args.model is not None and args.model != prior_model(prior, f"camera file {args.camera}"):
+            raise GBError(f"--model {args.model} differs from the model camera file {args.camera} was calibrated with "
+                          f"({prior_model(prior, args.camera)}); leave --model out to use the file's")
+    run_ = calibrate_session(args.session, model=args.model or "k1k2p1p2", loss=args.loss, f_scale_px=args.f_scale_px,
                              stripe_weight=args.stripe_weight, max_samples_per_capture=args.max_samples,
-                             corner_refiner=args.corners)
+                             corner_refiner=args.corners, camera_prior=prior,
+                             camera_prior_name=f"camera file {args.camera}")
     if args.preview:
         from ..report import write_capture_previews
 
