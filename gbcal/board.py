@@ -296,7 +296,8 @@ def refine_corners_symmetric(gray: np.ndarray, board: Board, corners: np.ndarray
 
     This is the symmetry criterion of corner finders such as ROCHADE and of OpenCV's
     ``findChessboardCornersSB`` refinement, fitted here over every pixel of the window.  A corner
-    that moves more than ``max_shift_px`` or does not converge keeps its input position.
+    that moves more than ``max_shift_px``, does not settle or cannot be solved for (NaN pixels)
+    keeps its input position.
     """
     c0 = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
     if c0.size == 0:
@@ -321,13 +322,19 @@ def refine_corners_symmetric(gray: np.ndarray, board: Board, corners: np.ndarray
         a = np.einsum("nki,nkj,k->nij", jac, jac, w) + 1e-9 * np.eye(6)
         b = np.einsum("nki,nk,k->ni", jac, ip - im, w)
         try:
-            step = -np.linalg.solve(a, b[..., None])[..., 0][:, :2]
-        except np.linalg.LinAlgError:  # a flat window (no corner there): keep the input
-            return c0.copy()
+            sol = np.linalg.solve(a, b[..., None])[..., 0]
+        except np.linalg.LinAlgError:  # some window without a corner (or with NaNs): corner by corner
+            sol = np.full(b.shape, np.nan)
+            for k in range(len(a)):
+                try:
+                    sol[k] = np.linalg.solve(a[k], b[k])
+                except np.linalg.LinAlgError:
+                    pass
+        step = -sol[:, :2]
         idx = np.flatnonzero(active)
         c[idx] += step
         last_step = np.max(np.abs(step), axis=1)
-        active[idx[last_step < 1e-5]] = False
+        active[idx[~(last_step >= 1e-5)]] = False  # settled, or NaN (reverted below)
         if not active.any():
             break
     unsettled = np.zeros(len(c), bool)

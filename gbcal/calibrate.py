@@ -293,7 +293,8 @@ def calibrate_session(session_dir, *, model: str = "k1k2p1p2", loss: str = "soft
         "baseline_std_mm": _g(std.get("baseline_mm", float("nan"))),
         "plane_normal_std_deg": {"median": _g(np.median(n_std_deg)), "max": _g(np.max(n_std_deg))},
         "plane_d_std_mm": {"median": _g(np.median(d_std_mm)), "max": _g(np.max(d_std_mm))},
-        "depth_std_mm": {"distance_mm": round(depth_at_mm, 1), "centre": _g(depth_std[0]),
+        "depth_std_mm": {"distance_mm": round(depth_at_mm, 1),
+                         "centre": _g(depth_std[0]) if np.isfinite(depth_std[0]) else None,  # None: not lit
                          "max": _g(np.nanmax(depth_std)) if np.isfinite(depth_std).any() else None},
         "residual_sigma": {k: _g(v) for k, v in res.sigma.items()},
         "note": "1-sigma from (J^T W J)^-1, W = inverse variance of each residual kind (inliers); depth_std_mm: "

@@ -360,3 +360,14 @@ def test_bouguet_images_detected_in_canonical_order():
         second = np.mean([c[0, 1], c[0, 2], c[1, 1], c[1, 2]], axis=0)
         val = lambda p: float(img[int(round(p[1])), int(round(p[0]))])  # noqa: E731
         assert val(first) > val(second) + 40
+
+
+def test_symmetric_refiner_keeps_a_corner_whose_window_holds_nan():
+    b = Board(3, 3, 10.0)
+    e1, e2 = np.array([1.0, 0.0]), np.array([0.0, 1.0])
+    img = x_junction(np.array([60.3, 50.2]), e1, e2)
+    img[45:48, 63:66] = np.nan  # a dead patch inside the middle corner's window only
+    c = grid_around(np.array([60.0, 50.0]), e1, e2, 20.0)
+    got = refine_corners_symmetric(img, b, c)
+    np.testing.assert_array_equal(got[4], c[4])
+    assert np.all(np.isfinite(got))
