@@ -352,10 +352,13 @@ def save_run(path, run: CalibrationRun) -> tuple[Path, Path]:
 
 
 def prior_model(camera_file: Calibration, name: str) -> str:
-    """The distortion model a camera file was calibrated with (``residuals.model``), checked."""
+    """The distortion model a camera file was calibrated with, checked: ``residuals.model``
+    (``gbcal camera``) or ``residuals.camera_model`` (a whole rig's ``gbcal calibrate``, whose
+    camera can be reused too)."""
     from .bundle import DIST_MODELS
 
-    m = (camera_file.residuals or {}).get("model")
+    r = camera_file.residuals or {}
+    m = r.get("model", r.get("camera_model"))
     if m not in DIST_MODELS:
         raise GBError(f"{name}: residuals.model must name the camera's distortion model ({', '.join(DIST_MODELS)}), "
                       f"got {m!r}; write the file with 'gbcal camera'")

@@ -252,8 +252,13 @@ def test_a_camera_prior_holds_the_camera_and_is_recorded(session, run, tmp_path)
     assert any("disagrees with it on fx" in line for line in summary_lines(far)), far.calibration.residuals["camera_prior"]
 
 
-def test_a_camera_prior_that_cannot_apply_is_refused(session, tmp_path):
-    from gbcal.calibrate import calibrate_session
+def test_a_camera_prior_that_cannot_apply_is_refused(session, run, tmp_path):
+    from gbcal.calibrate import calibrate_session, prior_arrays, prior_model
+
+    # a whole rig's calibration carries its camera's model too, and can serve
+    assert prior_model(run.calibration, "rig") == "k1k2p1p2"
+    mu, sd = prior_arrays(run.calibration, "k1k2p1p2", "rig")
+    assert mu.shape == sd.shape == (8,) and np.all(sd > 0)
     from gbscan.calibfile import save_calibration
 
     from gbscan import sim
