@@ -351,6 +351,19 @@ def save_run(path, run: CalibrationRun) -> tuple[Path, Path]:
     return path, npz
 
 
+def load_camera_prior(path, model: str | None = None) -> tuple[Calibration, str]:
+    """A camera file for ``camera_prior`` (``gbcal camera``'s, or a whole rig's) and its distortion
+    model, read strictly; GBError when ``model`` is given and differs from the file's."""
+    from gbscan.calibfile import load_calibration
+
+    cam = load_calibration(path, require_planes=False)
+    m = prior_model(cam, f"camera file {path}")
+    if model is not None and model != m:
+        raise GBError(f"--model {model} differs from the model camera file {path} was calibrated with ({m}); "
+                      "leave --model out to use the file's")
+    return cam, m
+
+
 def prior_model(camera_file: Calibration, name: str) -> str:
     """The distortion model a camera file was calibrated with, checked: ``residuals.model``
     (``gbcal camera``) or ``residuals.camera_model`` (a whole rig's ``gbcal calibrate``, whose

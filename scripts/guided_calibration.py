@@ -117,6 +117,9 @@ def build_parser() -> argparse.ArgumentParser:
     g = p.add_argument_group("calibration")
     g.add_argument("-o", "--calib", help="calibration file to write (default SESSION/calib.yaml)")
     g.add_argument("--no-calibrate", action="store_true", help="only capture the session")
+    g.add_argument("--camera-calib", metavar="CAMERA.yaml",
+                   help="hold the camera to one calibrated on its own ('gbcal camera' on a bigger board close up): "
+                        "a better depth scale (what 'gbcal calibrate --camera' does)")
     g = p.add_argument_group("simulation")
     g.add_argument("--simulate", action="store_true", help="simulated rig and operator (for tests and demos)")
     g.add_argument("--sim-scale", type=float, default=0.5,
@@ -143,6 +146,11 @@ def _run(args, devices) -> int:
 
     board = parse_board(args.board, args.square_mm)
     spec = PatternSpec(args.projector[0], args.projector[1], args.stripe_px, not args.no_markers)
+    prior = None
+    if args.camera_calib:  # read before any capture: a bad file should not cost a session
+        from gbcal.calibrate import load_camera_prior
+
+        prior, _ = load_camera_prior(args.camera_calib)
     if args.poses < 1:
         raise GBError("--poses must be at least 1")
     max_blur_px = args.max_blur_px or (7.0 * args.sim_scale if args.simulate else 7.0)
@@ -192,7 +200,8 @@ def _run(args, devices) -> int:
         return 0
     from gbcal.calibrate import calibrate_session, save_run, summary_lines
 
-    run = calibrate_session(args.session, log=log)
+    run = calibrate_session(args.session, log=log, camera_prior=prior,
+                            camera_prior_name=f"camera file {args.camera_calib}")
     path, npz = save_run(args.calib or Path(args.session) / "calib.yaml", run)
     for line in summary_lines(run):
         print(line)

@@ -466,6 +466,13 @@ def test_simulated_guided_session_end_to_end(tmp_path, capsys):
     # a second run into the same folder is refused, with one line and nothing overwritten
     rc = g.main([str(sess), "--simulate", "--poses", "1", "--no-calibrate"])
     assert rc == 1 and "already holds captures" in capsys.readouterr().err
+    # another session, its camera held to the first calibration's
+    rc = g.main([str(tmp_path / "session2"), "--simulate", "--poses", "4", "--board", "7x5", "--square-mm", "25",
+                 "--sim-preset", "typical", "--camera-calib", str(tmp_path / "calib.yaml"), "-o", str(tmp_path / "c2.yaml")])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    assert "camera held to camera file" in out.out and "depth uncertainty of a scan at" in out.out
+    assert load_calibration(tmp_path / "c2.yaml").residuals["camera_prior"]["file"].endswith("calib.yaml")
 
 
 def test_bad_options_are_one_line(tmp_path, capsys):
@@ -476,6 +483,10 @@ def test_bad_options_are_one_line(tmp_path, capsys):
     assert g.main([str(tmp_path / "s"), "--simulate", "--sim-faults", "2:wobble"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "unknown fault" in err[0] and not (tmp_path / "s").exists()
+    # a camera file that cannot serve is refused before any capture
+    assert g.main([str(tmp_path / "s"), "--simulate", "--camera-calib", str(tmp_path / "missing.yaml")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "missing.yaml does not exist" in err[0] and not (tmp_path / "s").exists()
 
 
 def test_help_documents_the_procedure(capsys):

@@ -64,14 +64,9 @@ def run(args) -> int:
         raise GBError(f"cannot write {out}: folder {out.parent} does not exist (create it first)")
     prior = None
     if args.camera:
-        from gbscan.calibfile import load_calibration
+        from ..calibrate import load_camera_prior
 
-        from ..calibrate import prior_model
-
-        prior = load_calibration(args.camera, require_planes=False)
-        if args.model is not None and args.model != prior_model(prior, f"camera file {args.camera}"):
-            raise GBError(f"--model {args.model} differs from the model camera file {args.camera} was calibrated with "
-                          f"({prior_model(prior, args.camera)}); leave --model out to use the file's")
+        prior, _ = load_camera_prior(args.camera, args.model)
     run_ = calibrate_session(args.session, model=args.model or "k1k2p1p2", loss=args.loss, f_scale_px=args.f_scale_px,
                              stripe_weight=args.stripe_weight, max_samples_per_capture=args.max_samples,
                              corner_refiner=args.corners, camera_prior=prior,
