@@ -57,6 +57,19 @@ POSE_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
 PROJ_NAMES = ("proj_rx", "proj_ry", "proj_rz", "proj_sx", "proj_sz", "proj_fx", "proj_cx")
 
 
+def camera_unknowns(camera: Camera, dist_model: str) -> tuple[list[str], np.ndarray]:
+    """The bundle's camera unknowns under ``dist_model``: their names and ``camera``'s values
+    (``fx, fy, cx, cy`` px, then the model's free distortion terms), in ``theta``'s order."""
+    free = DIST_MODELS[dist_model]
+    K = camera.K
+    return (_camera_unknown_names(dist_model),
+            np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], np.asarray(camera.dist, np.float64)[list(free)]])
+
+
+def _camera_unknown_names(dist_model: str) -> list[str]:
+    return list(CAMERA_NAMES) + [DIST_NAMES[i] for i in DIST_MODELS[dist_model]]
+
+
 # -- rotations ---------------------------------------------------------------------------------
 def rodrigues(rvec: np.ndarray) -> np.ndarray:
     """Rotation vectors (..., 3) rad -> rotation matrices (..., 3, 3) (exact for small angles)."""
@@ -218,6 +231,7 @@ class BundleProblem:
         self.width, self.height = camera.width, camera.height
         self.dist0 = camera.dist.copy()
         self.skew = float(camera.K[0, 1])
+        self.dist_model = dist_model
         self.free_dist = np.array(DIST_MODELS[dist_model], np.int64)
         self.P = int(data.n_poses)
         self.proj_size = (rig.projector.width, rig.projector.height)
@@ -236,7 +250,7 @@ class BundleProblem:
             if mu.shape != (self.n_cam,) or sd.shape != (self.n_cam,) or not np.all(np.isfinite(mu)) \
                     or not np.all(sd > 0):
                 raise GBError(f"bundle: a camera prior needs {self.n_cam} finite means and positive standard "
-                              f"deviations ({', '.join(CAMERA_NAMES + tuple(DIST_NAMES[i] for i in self.free_dist))})")
+                              f"deviations ({', '.join(_camera_unknown_names(dist_model))})")
             if not prior_scale_px > 0:
                 raise GBError(f"bundle: prior_scale_px must be positive, got {prior_scale_px!r}")
             self.prior_mu, self.prior_w = mu, float(prior_scale_px) / sd
@@ -246,9 +260,7 @@ class BundleProblem:
         self.row_pose = np.concatenate([np.repeat(data.corner_pose, 2), data.stripe_pose]).astype(np.int64)
         self.stripe_weight = float(stripe_weight)
         theta = np.empty(self.n)
-        K = camera.K
-        theta[:4] = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
-        theta[4:self.n_cam] = camera.dist[self.free_dist]
+        theta[:self.n_cam] = camera_unknowns(camera, dist_model)[1]
         poses = np.concatenate([np.asarray(rvecs, np.float64).reshape(-1, 3),
                                 np.asarray(tvecs, np.float64).reshape(-1, 3)], axis=1)
         if poses.shape[0] != self.P:
@@ -399,7 +411,7 @@ class BundleProblem:
         return J.tocsr()
 
     def param_names(self) -> list[str]:
-        names = list(CAMERA_NAMES) + [DIST_NAMES[i] for i in self.free_dist]
+        names = _camera_unknown_names(self.dist_model)
         names += [f"pose{i}_{c}" for i in range(self.P) for c in POSE_NAMES]
         return names + list(PROJ_NAMES)
 
@@ -521,7 +533,7 @@ def refine(data: BundleData, camera: Camera, rvecs: np.ndarray, tvecs: np.ndarra
             "start_rms_px": float(np.sqrt(np.mean(r0[:prob.m_data] ** 2)))}
     if prob.n_prior:
         z = (theta[:prob.n_cam] - prob.prior_mu) * prob.prior_w / prob.prior_scale_px
-        info["camera_prior_z"] = dict(zip(list(CAMERA_NAMES) + [DIST_NAMES[i] for i in prob.free_dist], z.tolist()))
+        info["camera_prior_z"] = dict(zip(prob.param_names()[:prob.n_cam], z.tolist()))
     rv, tv = prob.poses(theta)
     return BundleResult(prob.rig(theta), rv.copy(), tv.copy(), rc, rs, rs_proj, inl, std, pose_std, sigma, info,
                         theta=theta, cov=cov, problem=prob)

@@ -219,10 +219,9 @@ def calibrate_session(session_dir, *, model: str = "k1k2p1p2", loss: str = "soft
     if camera_prior is not None:
         prior = prior_arrays(camera_prior, model, camera_prior_name)
         # the session's own camera (corners alone) against the file: the sigma of their difference
-        from .bundle import CAMERA_NAMES, DIST_MODELS, DIST_NAMES
+        from .bundle import camera_unknowns
 
-        cam_names = list(CAMERA_NAMES) + [DIST_NAMES[i] for i in DIST_MODELS[model]]
-        own = np.r_[cam0.K[0, 0], cam0.K[1, 1], cam0.K[0, 2], cam0.K[1, 2], cam0.dist[list(DIST_MODELS[model])]]
+        cam_names, own = camera_unknowns(cam0, model)
         own_sd = np.array([float(cam_res.std.get(n, np.nan)) for n in cam_names])
         session_z = {n: round(float(v), 2) for n, v in zip(cam_names, (own - prior[0]) / np.hypot(own_sd, prior[1]))
                      if np.isfinite(v)}
@@ -381,12 +380,9 @@ def prior_model(camera_file: Calibration, name: str) -> str:
 def prior_arrays(camera_file: Calibration, model: str, name: str) -> tuple[np.ndarray, np.ndarray]:
     """``(mu, sigma)`` of the bundle's camera unknowns (fx, fy, cx, cy, then ``model``'s free
     distortion terms) from a camera file's ``camera`` and ``uncertainty.camera_std``."""
-    from .bundle import CAMERA_NAMES, DIST_MODELS, DIST_NAMES
+    from .bundle import camera_unknowns
 
-    cam = camera_file.camera
-    free = DIST_MODELS[model]
-    names = list(CAMERA_NAMES) + [DIST_NAMES[i] for i in free]
-    mu = np.r_[cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2], cam.dist[list(free)]]
+    names, mu = camera_unknowns(camera_file.camera, model)
     std = (camera_file.uncertainty or {}).get("camera_std") or {}
     try:
         sd = np.array([float(std[n]) for n in names])
@@ -414,6 +410,18 @@ def depth_uncertainty(res, board_xyz: np.ndarray) -> tuple[float, np.ndarray]:
     gu, gv = np.meshgrid(f * (cam.width - 1), f * (cam.height - 1))
     q = np.concatenate([[[(cam.width - 1) / 2, (cam.height - 1) / 2]], np.stack([gu.ravel(), gv.ravel()], 1)])
     return dist, res.depth_std(q, dist)
+
+
+def depth_uncertainty_line(uncertainty: dict | None) -> str:
+    """The sentence ``gbcal calibrate`` and ``gbcal report`` print for a calibration's
+    ``uncertainty.depth_std_mm`` ("" when it has none)."""
+    ds = (uncertainty or {}).get("depth_std_mm") or {}
+    if ds.get("centre") is None:
+        return ""
+    mx = ds.get("max")
+    return (f"depth uncertainty of a scan at {ds['distance_mm']:.0f} mm (the boards' median distance): "
+            f"± {ds['centre']:.3f} mm at the image centre" + (f", ± {mx:.3f} mm at most" if mx else "")
+            + " (1 sigma; mostly the scale, from fx: more poses, a bigger board or steeper tilts narrow it)")
 
 
 def summary_lines(run: CalibrationRun) -> list[str]:
@@ -448,12 +456,9 @@ def summary_lines(run: CalibrationRun) -> list[str]:
         out.append(f"camera held to {pr['file']} (within its standard deviations)" + (
             "; the session disagrees with it on " + ", ".join(f"{k} ({v:+.1f} sigma)" for k, v in far.items())
             + ": was the lens refocused or zoomed since the camera was calibrated?" if far else ""))
-    ds = cal.uncertainty.get("depth_std_mm") or {}
-    if ds.get("centre") is not None:
-        mx = ds.get("max")
-        out.append(f"depth uncertainty of a scan at {ds['distance_mm']:.0f} mm (the boards' median distance): "
-                   f"± {ds['centre']:.3f} mm at the image centre" + (f", ± {mx:.3f} mm at most" if mx else "")
-                   + " (1 sigma; mostly the scale, from fx: more poses, a bigger board or steeper tilts narrow it)")
+    line = depth_uncertainty_line(cal.uncertainty)
+    if line:
+        out.append(line)
     worst = sorted(used, key=lambda c: -c.stripe_rms_px if np.isfinite(c.stripe_rms_px) else 0)[:1]
     if worst:
         out.append(f"worst capture: {worst[0].name} (corner RMS {worst[0].corner_rms_px:.3f} px, stripe RMS "

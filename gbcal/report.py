@@ -167,10 +167,11 @@ def summary_text(calib, S: dict | None, note: str, cells_empty: int | None) -> l
     if calib.projector:
         lines.append(f"projector: fx {calib.projector['matrix'][0][0]:.1f} px, baseline "
                      f"{calib.projector.get('baseline_mm', float('nan')):.2f} mm")
-    ds = (calib.uncertainty or {}).get("depth_std_mm") or {}
-    if ds.get("centre") is not None:
-        lines.append(f"depth uncertainty of a scan at {ds['distance_mm']:.0f} mm: ± {ds['centre']:.3f} mm at the image "
-                     f"centre" + (f", ± {ds['max']:.3f} mm at most" if ds.get("max") else "") + " (1 sigma)")
+    from .calibrate import depth_uncertainty_line
+
+    depth = depth_uncertainty_line(calib.uncertainty)
+    if depth:
+        lines.append(depth)
     for key, unit in (("corner_rms_px", "px"), ("stripe_rms_px", "camera px"), ("stripe_rms_proj_px", "projector px"),
                       ("plane_rms_mm", "mm")):
         if key in r:

@@ -37,7 +37,9 @@ def main(argv=None) -> int:
     p.add_argument("--preset", default="typical")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-samples", type=int, default=20000)
-    p.add_argument("--corners", default="symmetric", choices=["symmetric", "cornersubpix"],
+    from gbcal.board import CORNER_REFINERS, DEFAULT_CORNER_REFINER
+
+    p.add_argument("--corners", default=DEFAULT_CORNER_REFINER, choices=CORNER_REFINERS,
                    help="corner refiner (gbcal calibrate --corners)")
     p.add_argument("--camera-captures", type=int, default=0, metavar="N",
                    help="also calibrate with a camera calibrated on its own from N captures of a big board")
@@ -94,11 +96,14 @@ def main(argv=None) -> int:
 
     rr = sim.render(rig, sim.scenes.plane(650.0), render_pattern(cal.pattern or spec), args.preset, seed=0)
     keep = rr.lit & ~rr.depth_edge
-    out = []
-    for c in (cal, calibration_from_rig(rig, cal.pattern or spec)):
+
+    def plane_error(c):
+        """(depth RMS, mean depth error) mm of that plane scanned end to end with calibration ``c``."""
         s = Scanner(c).scan(rr.image)
         dz = (s.xyz[..., 2] - rr.point[..., 2])[s.valid & keep]
-        out.append((float(np.sqrt(np.mean(dz ** 2))), float(np.mean(dz))))
+        return float(np.sqrt(np.mean(dz ** 2))), float(np.mean(dz))
+
+    out = [plane_error(c) for c in (cal, calibration_from_rig(rig, cal.pattern or spec))]
     ds = cal.uncertainty.get("depth_std_mm") or {}
     print(f"plane at 650 mm scanned end to end (decoded columns): depth RMS {out[0][0]:.4f} mm (estimated, mean "
           f"{out[0][1]:+.4f}) vs {out[1][0]:.4f} mm (true); the calibration states +- {ds.get('centre', float('nan')):.4f} "
@@ -115,12 +120,11 @@ def main(argv=None) -> int:
                                  corner_refiner=args.corners, camera_prior=camera_file,
                                  camera_prior_name="the camera calibrated alone")
         cal2 = run2.calibration
-        s = Scanner(cal2).scan(rr.image)
-        dz = (s.xyz[..., 2] - rr.point[..., 2])[s.valid & keep]
+        rms2, mean2 = plane_error(cal2)
         ds2 = cal2.uncertainty.get("depth_std_mm") or {}
         K2 = cal2.camera.K
         print(f"with the camera held to it: fx {K2[0, 0] - K0[0, 0]:+.3f} px, plane at 650 mm depth RMS "
-              f"{np.sqrt(np.mean(dz ** 2)):.4f} mm (mean {np.mean(dz):+.4f}); the calibration states +- "
+              f"{rms2:.4f} mm (mean {mean2:+.4f}); the calibration states +- "
               f"{ds2.get('centre', float('nan')):.4f} mm at {ds2.get('distance_mm', float('nan')):.0f} mm; prior z "
               + " ".join(f"{k} {v:+.1f}" for k, v in cal2.residuals["camera_prior"]["z"].items()))
     if tmp:
