@@ -1998,7 +1998,8 @@ def test_weld_across_an_unlocated_boundary_is_cut(scene, sigma_px, wrong_without
     pixels as well; the counterfactual runs without the retry of misfit regions too,
     ``retry_spacing_ratio``, which cuts the 760 mm weld as well, and without the confirmed
     marker bound of the row check, ``conflict_confirm``, which rejects the 760 mm weld's rows
-    too, and without the tilt-step cut, ``tilt_step``, which parts frame 5's weld as well.)"""
+    too, and without the tilt-step cut, ``tilt_step``, which parts frame 5's weld as well; and
+    without the end rule's reach, ``rim_end_reach_px``, which masks a few of its pixels.)"""
     import dataclasses
 
     from gbscan.unwrap import UnwrapParams
@@ -2008,7 +2009,7 @@ def test_weld_across_an_unlocated_boundary_is_cut(scene, sigma_px, wrong_without
     else:
         cond = dataclasses.replace(sim.preset("typical"), supersample=3)
         r = sim.render(sim.paper_rig(), sim.scenes.multi_object(760.0), render_pattern(PatternSpec()), cond, seed=1)
-    found = {"blur_sigma_along_px": sigma_px, "rim_end_rows": 1, **NO_FAINT}
+    found = {"blur_sigma_along_px": sigma_px, "rim_end_rows": 1, "rim_end_reach_px": 0, **NO_FAINT}
     sm = decode(r.image, PatternSpec(), DecodeParams(**found))
     sm0 = decode(r.image, PatternSpec(), DecodeParams(**found,
                                                       unwrap=UnwrapParams(bridge_ratio=0.0, retry_spacing_ratio=0.0,
@@ -2097,12 +2098,13 @@ def test_short_fragment_hanging_from_one_lined_up_row_is_not_linked(frame, sigma
     than ``link_hang_rows`` = 5 rows hanging from one row of votes passes the slope test of
     ``link_components`` (here the slope jumps, or cannot be measured): the fragment stays dropped.
     (One end row and the guard next to unindexed / isolated pixels only, as found: the rim guard
-    now also stands next to ``no_boundary`` pixels and masks the fragment's top rows itself.)"""
+    now also stands next to ``no_boundary`` pixels and masks the fragment's top rows itself, and
+    the end rule's reach, ``rim_end_reach_px``, its pixels beside the contact row.)"""
     from gbscan.unwrap import UnwrapParams
 
     r = _moving_frame(650.0 + 5.0 * frame, frame)
     found = {"blur_sigma_along_px": sigma_px, "rim_end_rows": 1, "rim_guard_no_boundary": False, "rim_lit_rows": 0,
-             **NO_FAINT}
+             "rim_end_reach_px": 0, **NO_FAINT}
     sm = decode(r.image, PatternSpec(), DecodeParams(**found))
     sm0 = decode(r.image, PatternSpec(), DecodeParams(**found, unwrap=UnwrapParams(link_hang_rows=0)))
     assert _wrong_off_edges(decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px)), r) == 0
@@ -2120,7 +2122,8 @@ def test_panel_with_a_clear_slope_step_is_not_linked_through_one_row():
     wall along one row where the stripes line up 8 stripes apart; its slope along the row is 11 %
     below the wall's (three times ``link_slope_tol``) but the fitted boundaries spread the votes:
     z = 12.3, under the ``link_slope_z`` of 15, and the link was 8 stripes off (over 300 wrong
-    pixels).  The near test at ``link_slope_z_near`` = 10 refuses it.  (One end row, as found.)
+    pixels).  The near test at ``link_slope_z_near`` = 10 refuses it.  (One end row and no reach
+    of the end rule, ``rim_end_reach_px``, as found.)
     The gradient test measured from 3 rows past the contact (``link_grad_skip_rows``, twenty-third
     session) refuses it as well; both decodes measure from the contact row, to pin the slope test
     alone."""
@@ -2128,7 +2131,7 @@ def test_panel_with_a_clear_slope_step_is_not_linked_through_one_row():
 
     r = _moving_frame(675.0, 5)
     assert _wrong_off_edges(decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=3.0)), r) == 0
-    kw = {"blur_sigma_along_px": 3.0, "boundary_fit_half": 3, "rim_end_rows": 1}
+    kw = {"blur_sigma_along_px": 3.0, "boundary_fit_half": 3, "rim_end_rows": 1, "rim_end_reach_px": 0}
     sm = decode(r.image, PatternSpec(), DecodeParams(**kw, unwrap=UnwrapParams(link_grad_skip_rows=0)))
     sm0 = decode(r.image, PatternSpec(), DecodeParams(**kw, unwrap=UnwrapParams(link_slope_z_near=15.0,
                                                                                 link_grad_skip_rows=0)))
@@ -2211,6 +2214,28 @@ def test_panel_welded_along_its_rows_is_parted_by_the_tilt_step(baseline_mm, see
     assert (gained & bad & ~r.depth_edge).sum() <= 0.01 * gained.sum()
     both = sm.valid & sm0.valid
     assert np.abs(sm.column[both] - sm0.column[both]).max() < PatternSpec().stripe_px / 2
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed, wrong_off", [(1, 8), (2, 8)])
+def test_left_hand_rig_weld_across_a_broken_shadow_is_masked(seed, wrong_off):
+    """Issue 3, the projector on the camera's left (baseline -200 mm), the multi-object scene at
+    700 mm.  At a forward depth jump whose stripes line up in width, the shadow between the far
+    surface (left) and the near one is broken into single dark pixels, which carry interpolated
+    columns: the far surface's row stretch ran on into the near one's first stripes
+    (``GGG . BB . G``), and 10 pixels off the depth edges were reported 32 projector px off.
+    ``DecodeParams.rim_end_reach_px`` ends such a stretch at its first dark pixel within its last
+    5 px: none left, for 0.1 % of the reported pixels."""
+    r = sim.render(sim.paper_rig(baseline_mm=-200.0), sim.scenes.multi_object(700.0), render_pattern(PatternSpec()),
+                   "typical", seed=seed)
+    sm = decode(r.image, PatternSpec())
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(rim_end_reach_px=0))
+    wrong, wrong0 = _wrong_off_edges(sm, r), _wrong_off_edges(sm0, r)
+    print(f"left-hand rig, multi-object at 700 mm, seed {seed}: wrong pixels off depth edges {wrong0} -> {wrong}, "
+          f"reported {sm0.valid.sum()} -> {sm.valid.sum()}")
+    assert wrong0 >= wrong_off and wrong == 0
+    assert not (sm.valid & ~sm0.valid).any()                     # it only masks
+    assert (sm0.valid & ~sm.valid).sum() < 0.001 * sm0.valid.sum()
 
 
 def test_sphere_with_a_welded_in_strip_is_indexed_without_it():

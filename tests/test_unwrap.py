@@ -1008,8 +1008,9 @@ def _abs_row_reference(column_rel, region, reg_off, v, out, weight):
 
 @njit(nogil=True)
 def _rim_mask_reference(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, rim_code, pull_out,
-                        end_isolated, end_overflow, labels):
-    """``kernels.rim_mask`` as it was (per-pixel branches, in-place rows): the reference."""
+                        end_isolated, end_overflow, labels, end_reach=0):
+    """``kernels.rim_mask`` as it was (per-pixel branches, in-place rows), and the reach rule
+    pixel by pixel (``_reach_reference``): the reference."""
     H, W = column_rel.shape
     want = pull_out.shape[0] == H and pull_out.shape[1] == W
     n_ring = 2 * half_px + 2
@@ -1083,7 +1084,42 @@ def _rim_mask_reference(column_rel, region, reg_off, reason, half_px, max_pull_p
             if rim and reason[v, u] == 0:
                 reason[v, u] = rim_code
                 n_rim += 1
+        if end_px > 0 and end_reach > 0:
+            n_rim += _reach_reference(column_rel[v], roww, reason[v], end_px, end_reach, rim_code)
     return n_rim
+
+
+@njit(nogil=True)
+def _reach_reference(crel, roww, rsn, end_px, reach, rim_code):
+    # the reach rule pixel by pixel, every decision read from the reasons before it: a pixel with
+    # an absolute column and reason 0 goes when its stretch ends next to no signal (or the side)
+    # and a no-signal pixel d within the stretch's last `reach` px, d not the end, lies at most
+    # end_px beyond it toward that end (the farthest such d from the end decides)
+    W = crel.size
+    snap = rsn.copy()
+    n = 0
+    for u in range(W):
+        if snap[u] != 0 or roww[u] == 0 or crel[u] != crel[u]:
+            continue
+        a = u
+        while a > 0 and crel[a - 1] == crel[a - 1]:
+            a -= 1
+        b = u
+        while b < W - 1 and crel[b + 1] == crel[b + 1]:
+            b += 1
+        go = False
+        if b == W - 1 or 1 <= snap[b + 1] <= 3:
+            ds = [d for d in range(a, b) if b - d < reach and 1 <= snap[d] <= 3]
+            if len(ds) > 0 and u >= min(ds) - end_px:
+                go = True
+        if a == 0 or 1 <= snap[a - 1] <= 3:
+            ds = [d for d in range(a + 1, b + 1) if d - a < reach and 1 <= snap[d] <= 3]
+            if len(ds) > 0 and u <= max(ds) + end_px:
+                go = True
+        if go:
+            rsn[u] = rim_code
+            n += 1
+    return n
 
 
 @pytest.mark.parametrize("name", ["multi_move5", "hard_plane"])
@@ -1108,19 +1144,21 @@ def test_rim_mask_equals_its_per_pixel_form(name, monkeypatch):
     assert calls, "the decoder must call the rim rule"
     n_masked = 0
     for args in calls:
-        col, reg, off, reason, half, pull, end, code, _, iso, over, labels = args
+        col, reg, off, reason, half, pull, end, code, _, iso, over, labels, reach = args
         assert iso is True and over is True and labels.shape == reason.shape   # the decoder's defaults
+        assert reach == 5
         H, W = reason.shape
         for half2, pull2, end2, code2, want in ((half, pull, end, code, False), (half, pull, end, code, True),
                                                 (half, 0.0, end, code, False), (half, pull, 0, code, False),
                                                 (half, pull, 2, code, True), (1, 0.3, 3, 2, False),
                                                 (0, pull, end, 1, False)):
-            for iso2, over2 in ((True, True), (True, False), (False, True)):
+            for iso2, over2, reach2 in ((True, True, reach), (True, False, 0), (False, True, 3), (True, True, 0)):
                 r_new, r_ref = reason.copy(), reason.copy()
                 p_new = np.full((H, W) if want else (0, 0), -7.0, np.float32)
                 p_ref = p_new.copy()
-                n_new = real(col, reg, off, r_new, half2, pull2, end2, code2, p_new, iso2, over2, labels)
-                n_ref = _rim_mask_reference(col, reg, off, r_ref, half2, pull2, end2, code2, p_ref, iso2, over2, labels)
+                n_new = real(col, reg, off, r_new, half2, pull2, end2, code2, p_new, iso2, over2, labels, reach2)
+                n_ref = _rim_mask_reference(col, reg, off, r_ref, half2, pull2, end2, code2, p_ref, iso2, over2, labels,
+                                            reach2)
                 assert n_new == n_ref
                 np.testing.assert_array_equal(r_new, r_ref)
                 np.testing.assert_array_equal(p_new, p_ref)
@@ -1192,6 +1230,46 @@ def test_rim_mask_end_rule_masks_a_stretch_end_whose_run_overflows_its_columns()
         np.testing.assert_array_equal(r_ref, reason)
 
 
+def test_rim_mask_reach_rule_ends_a_stretch_at_its_last_dark_pixel():
+    """``end_reach``: a stretch that ends next to no signal, with a dark pixel (an interpolated
+    column) within its last ``end_reach`` px, ends there for the end rule: from ``end_px`` before
+    it to the end everything goes (the left-hand rig's weld, ``GGG . BB . G`` then shadow).  A
+    dark pixel farther in, an end beside a pixel with signal, or the rule off: only what the end
+    rule masks on its own."""
+    from gbscan import kernels
+
+    W = 24
+    none = np.zeros((0, 0), np.float32)
+
+    def masked(dark_at, beyond, reach, left_dark=None):
+        col = np.full((1, W), np.nan, np.float32)
+        col[0, 2:18] = np.arange(16, dtype=np.float32) * 2.5
+        region = np.full((1, W), -1, np.int32)
+        region[0, 2:18] = 0
+        reason = np.zeros((1, W), np.uint8)
+        reason[0, :2] = 1                   # dark before the stretch 2..17
+        reason[0, 18:] = beyond             # after it: no signal (1) or signal without a column (0)
+        region[0, 18:] = 0 if beyond == 0 else -1
+        for d in dark_at:
+            reason[0, d] = 1                # dark inside the stretch, its column interpolated
+        r_ref = reason.copy()
+        args = (np.zeros(1, np.float32), reason, 1, 0.0, 2, 8, none, False, False, np.zeros((1, W), np.uint8), reach)
+        n = kernels.rim_mask(col, region, *args)
+        got = np.flatnonzero(reason[0] == 8).tolist()
+        assert n == len(got)
+        assert _rim_mask_reference(col, region, args[0], r_ref, *args[2:]) == n
+        np.testing.assert_array_equal(r_ref, reason)
+        return got
+
+    assert masked([14], 1, 5) == [2, 3, 12, 13, 15, 16, 17]      # from 2 px before the dark pixel on
+    assert masked([13, 15], 1, 5) == [2, 3, 11, 12, 14, 16, 17]   # the farthest within reach decides
+    assert masked([14], 1, 0) == [2, 3, 16, 17]                   # off: the end rule's 2 px
+    assert masked([12], 1, 5) == [2, 3, 16, 17]                   # 5 px from the end: beyond reach
+    # the end beside signal: no reach (16: the end rule's own, the dark pixel 2 px from it)
+    assert masked([14], 0, 5) == [2, 3, 16]
+    assert masked([5], 1, 5) == [2, 3, 4, 6, 7, 16, 17]           # the left end, mirrored
+
+
 def test_rim_mask_equals_its_per_pixel_form_on_random_rows():
     """The same comparison on random images: many regions (some not indexed), holes in the
     columns, no-signal reasons everywhere, narrow images (the window leaves them), pulls large
@@ -1199,7 +1277,7 @@ def test_rim_mask_equals_its_per_pixel_form_on_random_rows():
     from gbscan import kernels
 
     rng = np.random.default_rng(3)
-    n_masked = n_over = 0
+    n_masked = n_over = n_reach = 0
     for trial in range(40):
         H, W = int(rng.integers(1, 30)), int(rng.integers(1, 50))
         n_reg = int(rng.integers(1, 6))
@@ -1213,19 +1291,25 @@ def test_rim_mask_equals_its_per_pixel_form_on_random_rows():
         labels = np.repeat(rng.integers(1, 4, (H, W // 2 + 1)), 2, axis=1)[:, :W].astype(np.uint8)
         for half, pull, end, code, want in ((2, 0.7, 2, 8, False), (1, 0.3, 1, 8, True), (0, 2.0, 3, 2, True),
                                             (3, 0.0, 1, 1, False), (2, 0.5, 0, 8, False)):
-            for iso, over in ((True, False), (False, False), (True, True), (False, True)):
+            for iso, over, reach in ((True, False, 0), (False, False, 5), (True, True, 2), (False, True, 0),
+                                     (True, True, 8)):
                 r_new, r_ref = reason.copy(), reason.copy()
                 p_new = np.full((H, W) if want else (0, 0), -7.0, np.float32)
                 p_ref = p_new.copy()
-                n_new = kernels.rim_mask(col, region, off, r_new, half, pull, end, code, p_new, iso, over, labels)
-                n_ref = _rim_mask_reference(col, region, off, r_ref, half, pull, end, code, p_ref, iso, over, labels)
-                assert n_new == n_ref, (trial, half, pull, end, code, iso, over)
+                n_new = kernels.rim_mask(col, region, off, r_new, half, pull, end, code, p_new, iso, over, labels, reach)
+                n_ref = _rim_mask_reference(col, region, off, r_ref, half, pull, end, code, p_ref, iso, over, labels,
+                                            reach)
+                assert n_new == n_ref, (trial, half, pull, end, code, iso, over, reach)
                 np.testing.assert_array_equal(r_new, r_ref)
                 np.testing.assert_array_equal(p_new, p_ref)
                 n_masked += n_new
                 n_over += n_new if over else -n_new
+                if reach:
+                    n_reach += n_new - kernels.rim_mask(col, region, off, reason.copy(), half, pull, end, code,
+                                                        np.zeros((0, 0), np.float32), iso, over, labels, 0)
     assert n_masked > 200
     assert n_over > 0       # the overflow rule had pixels to mask
+    assert n_reach > 0      # the reach rule masked pixels the others did not
 
 
 def test_cut_unlocated_cuts_only_a_bridge_that_does_not_fit():

@@ -807,7 +807,7 @@ def _end_need(gap, e, roww, flag, near, need):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, rim_code, pull_out, end_isolated,
-             end_overflow=False, labels=np.zeros((0, 0), np.uint8)):
+             end_overflow=False, labels=np.zeros((0, 0), np.uint8), end_reach=0):
     """Mask ``rim_code`` into ``reason`` (H, W) uint8, in place where it is 0, where a column is
     unreliable near a silhouette or bend (see :func:`gbscan.decode.rim_rule`); returns the count.
 
@@ -823,7 +823,11 @@ def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, 
       holds: a fragment of another surface, reported "isolated" later); with ``end_overflow``
       also when the next two pixels have reason 0, a region, no column and the pixel's colour in
       ``labels`` (H, W) uint8 (its run goes on past the columns' reach: see
-      :func:`gbscan.decode.rim_rule`).
+      :func:`gbscan.decode.rim_rule`); with ``end_reach`` > 0 (and ``end_px`` > 0), at a stretch
+      end next to reason 1..3 or the image's side, the stretch's pixel with reason 1..3 farthest
+      from that end within its last ``end_reach`` px counts as the end: from ``end_px`` before it
+      to the end, the pixels with an absolute column and reason 0 are masked (after the other
+      rules, per row).
     ``pull_out`` (H, W) float32 receives ``M[c] - c`` (pass a (0, 0) array to skip).
     Row-major with per-image-column accumulators; no image-size temporaries.  Per row: the pull
     test branch-free over the row, the end test's window only where the window is not all
@@ -900,46 +904,90 @@ def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, 
             # image) can be at a stretch end: the window test runs only there (few pixels)
             _nan_flags(crel, gap[e:e + W])
             anyf |= _end_need(gap, e, roww, flag[:W], near, need[:W])
-        if anyf == 0:
-            continue
-        # the flagged pixels, in order: the end rule reads the reasons as masked so far
-        rsn = reason[v]
-        rg = region[v]
-        for wi in range(Wp >> 3):
-            m = flag64[wi] | need64[wi]   # bytes 0 or 1: one bit per flagged pixel
-            while m != np.uint64(0):
-                u = wi * 8 + (ctz64(m) >> 3)
-                m &= m - np.uint64(1)
-                rim = flag[u] != 0
-                if need[u] != 0:
-                    # at the end of the row stretch and next to no signal (reason 1..3) or the
-                    # image's side, both within end_px (nothing is measured beyond the side, and
-                    # stage 3's windows are cut there: columns 0.3-0.9 projector px off within
-                    # 2 px of it)
-                    at_end = u - end_px < 0 or u + end_px >= W
-                    near_dark = at_end
-                    for x in range(max(u - end_px, 0), min(u + end_px, W - 1) + 1):
-                        cx = rsn[x]
-                        if x != u and cx >= 1 and cx <= 3:
-                            near_dark = True
-                        elif end_isolated and cx == 0 and rg[x] < 0 and (x == u - 1 or x == u + 1):
-                            near_dark = True
-                        elif end_overflow and cx == 0 and rg[x] >= 0 and crel[x] != crel[x] and \
-                                (x == u - 1 or x == u + 1):
-                            # the run goes on without a column for 2 px or more, in one colour
-                            # (a run wider than the stripe the columns reach: two surfaces'
-                            # stripes of one colour merged across a silhouette)
-                            x2 = 2 * x - u
-                            if 0 <= x2 < W and rsn[x2] == 0 and rg[x2] >= 0 and crel[x2] != crel[x2] and \
-                                    labels[v, x] == labels[v, u] and labels[v, x2] == labels[v, u]:
+        if anyf != 0:
+            # the flagged pixels, in order: the end rule reads the reasons as masked so far
+            rsn = reason[v]
+            rg = region[v]
+            for wi in range(Wp >> 3):
+                m = flag64[wi] | need64[wi]   # bytes 0 or 1: one bit per flagged pixel
+                while m != np.uint64(0):
+                    u = wi * 8 + (ctz64(m) >> 3)
+                    m &= m - np.uint64(1)
+                    rim = flag[u] != 0
+                    if need[u] != 0:
+                        # at the end of the row stretch and next to no signal (reason 1..3) or the
+                        # image's side, both within end_px (nothing is measured beyond the side, and
+                        # stage 3's windows are cut there: columns 0.3-0.9 projector px off within
+                        # 2 px of it)
+                        at_end = u - end_px < 0 or u + end_px >= W
+                        near_dark = at_end
+                        for x in range(max(u - end_px, 0), min(u + end_px, W - 1) + 1):
+                            cx = rsn[x]
+                            if x != u and cx >= 1 and cx <= 3:
                                 near_dark = True
-                        if crel[x] != crel[x]:
-                            at_end = True
-                    rim = at_end and near_dark
-                if rim and rsn[u] == 0:
-                    rsn[u] = rc
-                    n_rim += 1
+                            elif end_isolated and cx == 0 and rg[x] < 0 and (x == u - 1 or x == u + 1):
+                                near_dark = True
+                            elif end_overflow and cx == 0 and rg[x] >= 0 and crel[x] != crel[x] and \
+                                    (x == u - 1 or x == u + 1):
+                                # the run goes on without a column for 2 px or more, in one colour
+                                # (a run wider than the stripe the columns reach: two surfaces'
+                                # stripes of one colour merged across a silhouette)
+                                x2 = 2 * x - u
+                                if 0 <= x2 < W and rsn[x2] == 0 and rg[x2] >= 0 and crel[x2] != crel[x2] and \
+                                        labels[v, x] == labels[v, u] and labels[v, x2] == labels[v, u]:
+                                    near_dark = True
+                            if crel[x] != crel[x]:
+                                at_end = True
+                        rim = at_end and near_dark
+                    if rim and rsn[u] == 0:
+                        rsn[u] = rc
+                        n_rim += 1
+        if end_px > 0 and end_reach > 0:
+            n_rim += _reach_ends(crel, roww, reason[v], end_px, end_reach, rc)
     return n_rim
+
+
+@njit(cache=True, nogil=True)
+def _reach_ends(crel, roww, rsn, end_px, reach, rc):
+    # rim_mask's reach rule over a row (crel (W,) relative columns, roww (W,) 1 where an absolute
+    # one, rsn (W,) reasons, in place): at a stretch end next to no signal (reason 1..3) or the
+    # image's side, the stretch's no-signal pixel (an interpolated column) farthest from the end
+    # within its last ``reach`` px counts as the end: from ``end_px`` before it on, the pixels
+    # with an absolute column and reason 0 are masked ``rc``; returns their count
+    W = crel.size
+    n = 0
+    u = 0
+    while u < W:
+        if crel[u] != crel[u]:
+            u += 1
+            continue
+        a = u
+        while u < W and crel[u] == crel[u]:
+            u += 1
+        b = u - 1                               # the stretch a..b
+        # both ends' no-signal pixels first (the masking then cannot feed the other end's search,
+        # whatever the code)
+        lo = b + 1                              # masked from lo on (none: b + 1)
+        if b + 1 >= W or (rsn[b + 1] >= 1 and rsn[b + 1] <= 3):
+            for d in range(max(a, b - reach + 1), b):
+                if rsn[d] >= 1 and rsn[d] <= 3:
+                    lo = max(a, d - end_px)
+                    break
+        hi = a - 1                              # masked up to hi (none: a - 1)
+        if a == 0 or (rsn[a - 1] >= 1 and rsn[a - 1] <= 3):
+            for d in range(min(b, a + reach - 1), a, -1):
+                if rsn[d] >= 1 and rsn[d] <= 3:
+                    hi = min(b, d + end_px)
+                    break
+        for x in range(a, hi + 1):
+            if rsn[x] == 0 and roww[x] != 0:
+                rsn[x] = rc
+                n += 1
+        for x in range(max(lo, hi + 1), b + 1):
+            if rsn[x] == 0 and roww[x] != 0:
+                rsn[x] = rc
+                n += 1
+    return n
 
 
 @njit(cache=True, nogil=True)
