@@ -172,6 +172,25 @@ class UnwrapParams:
         the same aberration applied to the finished frames at 0.4 px 7 -> 0, a luma sharpening of
         1.0 4 -> 0; the lossless sweep, room light, clean, baselines, JPEG 4:4:4 and the blur
         grid at 1 / 2 / 3 px unchanged bit for bit (docs/history.md, twenty-second session).
+    conflict_extend : a rejected stretch does not stop at an agreeing marker (nor at its
+        confirmation) that also agrees under the stretch's own shift -- the even shift under
+        which the stretch's runs fit the pattern best, by at least ``conflict_events`` -- but runs
+        on to the first run that fits the region and not that shift (see
+        :func:`gbscan.kernels.marker_conflicts`).  The multi-object scene with its panel plain
+        (``sim.scenes.multi_object(panel_albedo=...)``) at 700 mm: the wall's rows weld onto the
+        panel's at its right silhouette 6 stripes off, where the marker gaps repeat (90, 96, 102),
+        so the wall's first marker lands on the panel's 96 and the panel's 90 confirms it; 42-100
+        wall pixels a frame before it stayed, 95 mm off in the scan, on 6 of the 45 frames of
+        ``scripts/sweep_decode.py --set panels``.  Measured (twenty-seventh session; off / on):
+        the panels set 88.08 -> 87.95 % reported, wrong pixels off depth edges 496 -> **0** (on
+        them 367 -> 228); the 48 scenes 83.79 -> 83.76 %, room light 91.85 -> 91.83 %, clean
+        89.93 -> 89.91 %, mirrored 88.83 -> 88.74 %, baselines 85.37 -> 85.30 %, none wrong
+        before or after; scans (``scripts/coverage_study.py``, seeds 0-2) of the sphere, head and
+        real face unchanged, multi-object 0-0.1 points fewer.  Without the ``conflict_events`` floor on the shift (one
+        agreement enough, ties by the dozen) every set lost 0.1-0.2 points and the multi-object
+        scans 0.3-0.5.  The peel (:func:`peel_conflicts`) takes its stretches without it: the runs
+        it adds are no evidence either way, and taking them out too left a panel too small to
+        index (4 400 pixels dropped).
     link_votes : a component that cannot be indexed alone (too small, too few markers) is indexed
         through the reported pixels around it when at least this many column-continuity votes
         agree on its offset (:func:`link_components`; 0 disables).
@@ -360,6 +379,7 @@ class UnwrapParams:
     conflict_clean_level: float = 0.15
     conflict_confirm: bool = True
     conflict_persist_rows: int = 3
+    conflict_extend: bool = True
     link_votes: int = 8
     link_lines: int = 3
     link_tol_px: float = 2.0
@@ -1196,7 +1216,7 @@ def marker_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, patter
                                           float(params.conflict_clean_level) if clean else 0.0,
                                           bool(params.conflict_confirm),
                                           np.ascontiguousarray(un.region, dtype=np.int32),
-                                          int(params.conflict_persist_rows))
+                                          int(params.conflict_persist_rows), bool(params.conflict_extend))
 
 
 #: RegionIndex.why of a region indexed once the row stretches its markers contradict were taken out
@@ -1242,7 +1262,9 @@ def peel_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, pattern:
     if not cand.any():
         return idx, peeled
     forced = dataclasses.replace(idx, indexed=cand)    # the candidates, at their best offsets
-    spans = marker_conflicts(labels, un, forced, pattern, params, gn, bn)
+    # (without conflict_extend: the runs it adds fit both offsets, no evidence either way, and
+    # taking them out too left the rest too small to index: a panel of 4 400 px dropped)
+    spans = marker_conflicts(labels, un, forced, pattern, dataclasses.replace(params, conflict_extend=False), gn, bn)
     if spans.size == 0:
         return idx, peeled
     # the stretches' pixels of the candidates (spans may overlap); everything else scores as -1

@@ -26,6 +26,7 @@ pixel with the simulator's truth (``r.proj_xy``):
     python scripts/sweep_decode.py --cache DIR --set clean        # the clean preset (16 frames)
     python scripts/sweep_decode.py --cache DIR --set baselines    # other baselines (33 frames)
     python scripts/sweep_decode.py --cache DIR --set mirrored     # the projector on the camera's left (21 frames)
+    python scripts/sweep_decode.py --cache DIR --set panels       # the multi-object scene's panel plain (45 frames)
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
 wrong non-edge pixels under it (all wrong regions with ``--edges``), and a total.  Progress lines go to stderr.  Renders are cached in ``--cache`` (npz).
@@ -46,7 +47,7 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 
 
 #: the frame sets of ``--set``: the sweep's 48 scenes, the same objects under room light, the clean preset
-SETS = ("main", "room-light", "clean", "baselines", "mirrored")
+SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels")
 
 
 def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str, int, int, object]]:
@@ -65,6 +66,8 @@ def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str,
         return _baseline_set(S, quick)
     if which == "mirrored":
         return _mirrored_set(S, quick)
+    if which == "panels":
+        return _panel_set(S, quick)
     if which != "main":
         raise ValueError(f"unknown frame set {which!r}, expected one of {SETS}")
     out = []
@@ -159,6 +162,25 @@ def _baseline_set(S, quick: bool) -> list:
     for b in BASELINES_MM:
         for seed in range(3):
             out.append((f"multi_650_b{b}_s{seed}", f"typical/b{b}", seed, 3, lambda: S.multi_object(650.0)))
+    return out[::3] if quick else out
+
+
+#: the ``panels`` set's panel albedos and depths
+PANEL_ALBEDOS = (0.3, 0.45, 0.6, 0.7, 0.85)
+PANEL_DEPTHS_MM = (650.0, 700.0, 760.0)
+
+
+def _panel_set(S, quick: bool) -> list:
+    # the multi-object scene with its panel of one albedo instead of colour patches, at three
+    # depths, seeds 0-2 (45 frames): the panel's stripes meet the wall's at its right silhouette,
+    # and where they line up 6 stripes apart the wall's markers 96 / 102 land on the panel's 90 /
+    # 96 (docs/method.md "Decoder", UnwrapParams.conflict_extend)
+    out = []
+    for d in PANEL_DEPTHS_MM:
+        for a in PANEL_ALBEDOS:
+            for seed in range(3):
+                out.append((f"multi_{d:.0f}_panel{a:g}_s{seed}", "typical", seed, 3,
+                            lambda d=d, a=a: S.multi_object(d, panel_albedo=a)))
     return out[::3] if quick else out
 
 

@@ -2030,13 +2030,13 @@ def test_regions_welded_at_a_silhouette_are_unwrapped_again_with_weaker_cuts():
     markers do not fit the pattern: all of it unindexed (45 % of the lit pixels reported).  The
     decoder unwraps again with the failed regions' rows also cut at spacing jumps over
     ``retry_spacing_ratio``: the two surfaces part and both are indexed, nothing wrong.  The
-    typical scene gains too (its own weld: 82.8 -> 85.6 %)."""
+    typical scene gains too (its own weld: 82.8 -> 85.6 %; 85.0 % since ``conflict_extend``)."""
     import dataclasses
 
     from gbscan.unwrap import UnwrapParams
 
     base = dataclasses.replace(sim.preset("typical"), supersample=1)
-    for ambient, before, after in ((0.3, 0.5, 0.8), (0.05, 0.84, 0.85)):
+    for ambient, before, after in ((0.3, 0.5, 0.8), (0.05, 0.84, 0.845)):
         cond = dataclasses.replace(base, ambient_rgb=(ambient,) * 3)
         r = sim.render(sim.paper_rig(), sim.scenes.multi_object(), render_pattern(PatternSpec()), cond, seed=0)
         sm = decode(r.image, PatternSpec())
@@ -2046,7 +2046,7 @@ def test_regions_welded_at_a_silhouette_are_unwrapped_again_with_weaker_cuts():
         sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(retry_spacing_ratio=0, split_rows=0,
                                                                               peel_max_frac=0.0)))
         s, s0 = scores(sm, r), scores(sm0, r)
-        assert s0["coverage"] < before and s["coverage"] > after, (ambient, s0, s)     # measured 45 -> 84 / 83 -> 86 %
+        assert s0["coverage"] < before and s["coverage"] > after, (ambient, s0, s)     # measured 45 -> 84 / 82 -> 85 %
         assert _wrong_off_edges(sm, r) == 0 and s["index_ok"] == 1.0
         assert sm.stats["weld_retry_px"] > 2000 and sm0.stats["weld_retry_px"] == 0
         assert sm.stats["reasons"]["unindexed"] < sm0.stats["reasons"]["unindexed"]
@@ -2236,6 +2236,32 @@ def test_left_hand_rig_weld_across_a_broken_shadow_is_masked(seed, wrong_off):
     assert wrong0 >= wrong_off and wrong == 0
     assert not (sm.valid & ~sm0.valid).any()                     # it only masks
     assert (sm0.valid & ~sm.valid).sum() < 0.001 * sm0.valid.sum()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed, albedo", [(1, 0.6), (2, 0.7), (0, 0.85)])
+def test_strip_welded_where_marker_gaps_repeat_is_rejected_back_to_a_decisive_run(seed, albedo):
+    """Issue 3, the multi-object scene at 700 mm with its panel plain (``panel_albedo``) instead of
+    colour patches.  At the panel's right silhouette its last blue stripe and the wall's first
+    merge into one run and the wall's rows weld on, 6 stripes off.  The wall's first marker
+    (true 102) lands on the panel region's marker 96 and agrees, and the one before it (the
+    panel's own 90) confirms it: with marker gaps of 6 and 6 a shift of 6 maps both onto markers.
+    The rejected stretch started at the coincidence, and the wall's pixels between the
+    silhouette and it (42-100 a frame, 95 mm off in the scan) stayed.  ``conflict_extend`` runs
+    the stretch on past agreeing runs that fit the stretch's shift too, to the first run that
+    fits the region alone: none left (6 of the 45 frames of ``sweep_decode.py --set panels`` had
+    them), for under 1 % of the reported pixels."""
+    from gbscan.unwrap import UnwrapParams
+
+    r = sim.render(sim.paper_rig(), sim.scenes.multi_object(700.0, panel_albedo=albedo), render_pattern(PatternSpec()),
+                   "typical", seed=seed)
+    sm = decode(r.image, PatternSpec())
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(conflict_extend=False)))
+    wrong, wrong0 = _wrong_off_edges(sm, r), _wrong_off_edges(sm0, r)
+    print(f"plain panel {albedo} at 700 mm, seed {seed}: wrong pixels off depth edges {wrong0} -> {wrong}, "
+          f"reported {sm0.valid.sum()} -> {sm.valid.sum()}")
+    assert wrong0 >= 40 and wrong == 0
+    assert (sm0.valid & ~sm.valid).sum() < 0.01 * sm0.valid.sum()
 
 
 def test_sphere_with_a_welded_in_strip_is_indexed_without_it():
@@ -2981,11 +3007,13 @@ def test_sweep_script_frame_sets(tmp_path, capsys):
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     fran = 1 if sim.scenes.FRAN_PATH.is_file() else 0
-    assert [len(mod.scene_list(False, w)) for w in mod.SETS] == [44 + 4 * fran, 44, 14 + 2 * fran, 33, 21]
+    assert [len(mod.scene_list(False, w)) for w in mod.SETS] == [44 + 4 * fran, 44, 14 + 2 * fran, 33, 21, 45]
     rig, base = mod._rig_and_preset("typical/b150")   # the baselines set: the paper rig, projector moved
     assert base == "typical" and np.linalg.norm(rig.projector_centre) == pytest.approx(150.0)
     rig, base = mod._rig_and_preset("typical/b-200")  # the mirrored set: the projector on the left
     assert base == "typical" and rig.projector_centre[0] == pytest.approx(-200.0)
+    panels = mod.scene_list(False, "panels")
+    assert all(p == "typical" for _, p, *_ in panels) and len({n for n, *_ in panels}) == 45
     mirrored = mod.scene_list(False, "mirrored")
     assert all(p == "typical/b-200" for _, p, *_ in mirrored) and len({n for n, *_ in mirrored}) == 21
     assert np.linalg.norm(mod._rig_and_preset("typical@warm0.25")[0].projector_centre) == pytest.approx(200.0)

@@ -234,26 +234,32 @@ def test_marker_conflicts_do_not_stop_at_a_coincidental_agreement():
     the rejected stretch only when the next event beyond it agrees too
     (``UnwrapParams.conflict_confirm``): every wrong pixel goes, from the last marker whose
     predecessor agrees as well (stripe 26); without the rule the stretch began at the coincidence
-    and 63 wrong pixels stayed.  What it cannot see: a coincidence right after a real
-    agreement (10 stripes off from stripe 17: the strip's 9 px a row before the coincidence stay
-    either way)."""
+    and 63 wrong pixels stayed.  A coincidence right after a real agreement (10 stripes off from
+    stripe 17: the strip's marker 30 on the region's 20, the region's 16 confirming it) fits the
+    strip's shift as well (16 + 10 = 26, a marker): ``conflict_extend`` runs the stretch on to the
+    first run that fits the region and not the shift (the marker 11: 21 is none), and the
+    strip's 9 px a row before the coincidence go too (27 stayed without it).  The first strip's
+    stretch keeps its bound 26: its runs fit shifts 12, 28 and 40 by one agreement each, short
+    of the two a shift needs (``conflict_events``; 26 + 28 = 54 is a marker)."""
     spec = PatternSpec()
-    for shift, jump, kept_with, kept_without in ((12, 30, 0, 63), (10, 17, 27, 27)):
+    for shift, jump, kept in ((12, 30, {(True, True): 0, (True, False): 0, (False, False): 63}),
+                              (10, 17, {(True, True): 0, (True, False): 27, (False, False): 27})):
         lab = welded_image(spec, jump=jump, shift=shift)
         un = uw.unwrap(lab)
         idx = uw.index_regions(lab, un.relative, un.region, un.region_px.size, spec)
         assert un.region_px.size == 1 and idx.indexed[0]
         truth = np.concatenate([np.arange(jump), np.arange(jump + shift, 45 + shift)]).repeat(3)
         wrong = (un.relative + idx.offset[0])[60:] != truth[None]
-        for confirm, kept in ((True, kept_with), (False, kept_without)):
-            bad = uw.spans_mask(uw.marker_conflicts(lab, un, idx, spec, uw.UnwrapParams(conflict_confirm=confirm)),
-                                lab.shape)
-            assert not bad[:60].any() and int((wrong & ~bad[60:]).sum()) == kept, (shift, jump, confirm)
-    lab = welded_image(spec, jump=30, shift=12)
-    un = uw.unwrap(lab)
-    idx = uw.index_regions(lab, un.relative, un.region, un.region_px.size, spec)
-    bad = uw.spans_mask(uw.marker_conflicts(lab, un, idx, spec), lab.shape)
-    assert not bad[60:, :26 * 3].any() and bad[60:, 26 * 3:].all()
+        for (confirm, extend), n_kept in kept.items():
+            p = uw.UnwrapParams(conflict_confirm=confirm, conflict_extend=extend)
+            bad = uw.spans_mask(uw.marker_conflicts(lab, un, idx, spec, p), lab.shape)
+            assert not bad[:60].any() and int((wrong & ~bad[60:]).sum()) == n_kept, (shift, jump, confirm, extend)
+    for jump, shift, first in ((30, 12, 26), (17, 10, 11)):
+        lab = welded_image(spec, jump=jump, shift=shift)
+        un = uw.unwrap(lab)
+        idx = uw.index_regions(lab, un.relative, un.region, un.region_px.size, spec)
+        bad = uw.spans_mask(uw.marker_conflicts(lab, un, idx, spec), lab.shape)
+        assert not bad[60:, :first * 3].any() and bad[60:, first * 3:].all(), (jump, shift)
 
 
 def test_marker_conflicts_ignore_a_single_missed_marker():

@@ -145,7 +145,7 @@ def slope_verdicts(c, k, side, lr_near, lr_deep, comps, offsets, lim_near, lim_d
 @njit(cache=True, nogil=True)
 def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_ub,
                      seg_region, reg_offset, reg_indexed, is_marker, min_run_px, min_events, clean_level,
-                     confirm, region, persist_rows):
+                     confirm, region, persist_rows, extend=False):
     """Pixels of indexed regions whose own row contradicts the region's marker placement.
 
     A region's offset is fixed by all of its markers at once; a segment that crossed a depth edge
@@ -186,6 +186,17 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
     boundary or a mixed pixel at a silhouette, the segment's end, lacks) whose middle column is
     cyan on the same stripe of the same region (``region`` (H, W) int32) for ``persist_rows``
     consecutive rows counts as ``min_events`` (``persist_rows`` < 2: off, ``region`` is not read).
+
+    ``extend``: a bounding agreeing run that would agree with the stretch's own shift as well
+    does not bound it.  The shift is the even one (``d`` stripes) under which the stretch's runs
+    agree best (cyan on a marker stripe +1, cyan off one or green/blue on one -1; its agreeing
+    end runs left out; when several tie, all of them), if their sum reaches ``min_events``
+    (else the bounds stay).  When the marker gaps repeat (stripes 90, 96, 102: a shift of 6
+    maps the region's marker and its confirming one onto markers), an agreeing run and its
+    confirmation fit both surfaces, and the jump may lie before either.  The stretch then runs
+    on past such runs to the first run that fits the region and not the shift (cyan on a marker
+    stripe ``A`` with ``A + d`` none, or green/blue on a stripe ``A`` that is none with
+    ``A + d`` one), which it includes (the boundary beside it belongs to neither surface).
     Returns the rejected spans, (n, 3) int32 rows ``(v, u_first, u_last)``.
     """
     H, W = labels.shape
@@ -198,6 +209,8 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
     rb = np.zeros(cap, np.int32)
     rl = np.zeros(cap, np.uint8)     # per run: its colour when at least min_run_px long, else 0
     mb = np.empty(cap, np.float32)   # a run's min(gn, bn), sorted
+    ar = np.zeros(cap, np.int64)     # per run: its absolute stripe in the region, -1 outside the pattern
+    best = np.zeros(2 * n_st + 1, np.bool_)   # extend: the stretch's best shifts (index d + n_st)
     for s in range(seg_row.shape[0]):
         k = seg_region[s]
         if k < 0 or not reg_indexed[k]:
@@ -213,8 +226,9 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
             e = 0
             lab = labels[v, a]        # a run starts with its colour (spikes and gaps merged inside)
             rr = relative[v, a]
+            A = rr + reg_offset[k]
+            ar[nr] = A if 0 <= A < n_st else -1
             if b - a + 1 >= min_run_px and lab != 0:
-                A = rr + reg_offset[k]
                 if 0 <= A < n_st:
                     if lab == CYAN:
                         e = 1 if is_marker[A] else -1
@@ -252,6 +266,17 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
                     n_bad -= ev[m]
             if n_bad < min_events:   # one odd run is noise (a marker missed at a rim, a cyan glint)
                 continue
+            if extend and _best_shifts(ev, rl, ar, lo, hi, is_marker, best, min_events):
+                while ev[lo] == 1 and _fits_shift(lo, rl, ar, is_marker, best, True):
+                    lo = _next_decisive(rl, ar, lo, -1, nr, is_marker, best)
+                    if lo < 0:
+                        lo = 0
+                        break
+                while ev[hi] == 1 and _fits_shift(hi, rl, ar, is_marker, best, True):
+                    hi = _next_decisive(rl, ar, hi, 1, nr, is_marker, best)
+                    if hi < 0:
+                        hi = nr - 1
+                        break
             if n_sp == spans.shape[0]:
                 grown = np.empty((2 * n_sp, 3), np.int32)
                 grown[:n_sp] = spans
@@ -296,6 +321,78 @@ def _cyan_rows(labels, relative, region, v, u, rr, k, most):
         n += 1
         q += 1
     return n
+
+
+@njit(cache=True, nogil=True)
+def _shift_event(lab, B, is_marker):
+    # marker_conflicts' event of a run of colour lab (0: too short) on absolute stripe B under a
+    # shift: +1 cyan on a marker stripe, -1 cyan off one or green/blue on one (or outside the
+    # pattern), 0 otherwise
+    n_st = is_marker.shape[0]
+    if lab == 0:
+        return 0
+    if B < 0 or B >= n_st:
+        return -1
+    if lab == CYAN:
+        return 1 if is_marker[B] else -1
+    return -1 if is_marker[B] else 0
+
+
+@njit(cache=True, nogil=True)
+def _best_shifts(ev, rl, ar, lo, hi, is_marker, best, min_events):
+    # marker_conflicts' extend: best[d + n_st] True for the even shifts d != 0 under which runs
+    # lo..hi agree best (their events' sum), its agreeing end runs left out (which surface they
+    # fit is the question); returns whether the best sum reaches min_events (a shift as well
+    # supported as a rejection must be: with one agreement to go on, shifts tie by the dozen)
+    n_st = is_marker.shape[0]
+    top = 0
+    best[:] = False
+    m0 = lo + 1 if ev[lo] == 1 else lo
+    m1 = hi - 1 if ev[hi] == 1 else hi
+    for i in range(-n_st // 2, n_st // 2 + 1):
+        d = 2 * i
+        if d == 0:
+            continue
+        sc = 0
+        for m in range(m0, m1 + 1):
+            if rl[m] != 0 and ar[m] >= 0:
+                sc += _shift_event(rl[m], ar[m] + d, is_marker)
+        if sc > top:
+            top = sc
+            best[:] = False
+        if sc == top and sc > 0:
+            best[d + n_st] = True
+    return top >= min_events
+
+
+@njit(cache=True, nogil=True)
+def _fits_shift(m, rl, ar, is_marker, best, agree):
+    # agree True: whether run m agrees (cyan on a marker stripe) under some best shift;
+    # False: whether it disagrees under every best shift (it fits the region only)
+    n_st = is_marker.shape[0]
+    if rl[m] == 0 or ar[m] < 0:
+        return False
+    for j in range(2 * n_st + 1):
+        if best[j]:
+            e = _shift_event(rl[m], ar[m] + j - n_st, is_marker)
+            if agree and e == 1:
+                return True
+            if not agree and e != -1:
+                return False
+    return not agree
+
+
+@njit(cache=True, nogil=True)
+def _next_decisive(rl, ar, p, step, nr, is_marker, best):
+    # marker_conflicts' extend: the first run beyond p (direction step) that fits the region and
+    # no best shift (its event under the region 0 or +1, -1 under every best shift); -1 if none
+    q = p + step
+    while 0 <= q < nr:
+        if rl[q] != 0 and ar[q] >= 0 and (rl[q] == CYAN) == is_marker[ar[q]] and \
+                _fits_shift(q, rl, ar, is_marker, best, False):
+            return q
+        q += step
+    return -1
 
 
 @njit(cache=True, nogil=True)

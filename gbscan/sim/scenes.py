@@ -728,18 +728,20 @@ def head(distance_mm: float = 650.0, yaw_deg: float = 0.0, pitch_deg: float = 0.
     return Scene(objs, "head")
 
 
-def multi_object(distance_mm: float = 650.0, wall_mm: float = 900.0, albedo=None) -> Scene:
+def multi_object(distance_mm: float = 650.0, wall_mm: float = 900.0, albedo=None, panel_albedo=None) -> Scene:
     """Several separate objects at different depths with gaps, in front of a wall: a sphere
     (left, ~600 mm), a turned box (right, ~690 mm), a small tilted colourful panel (top,
-    ~760 mm), a small skin-coloured sphere (bottom, ~560 mm) and a grey wall at ``wall_mm``;
-    all objects inside the paper rig's projector frame (``distance_mm`` scales the layout)."""
+    ~760 mm; ``panel_albedo``: of that albedo instead), a small skin-coloured sphere (bottom,
+    ~560 mm) and a grey wall at ``wall_mm``; all objects inside the paper rig's projector frame
+    (``distance_mm`` scales the layout)."""
     d = _pos("multi_object distance_mm", distance_mm)
     s = d / 650.0
     a = 0.7 if albedo is None else albedo
     objs = [
         Sphere([-80 * s, -10 * s, 600 * s], 60 * s, a),
         Box(_rot_xy(10, -25), [95 * s, 25 * s, 690 * s], [40 * s, 55 * s, 30 * s], a),
-        Plane(_rot_xy(-20, 15), [-5 * s, -100 * s, 760 * s], colour_patches(25 * s), (-55 * s, 55 * s, -25 * s, 25 * s)),
+        Plane(_rot_xy(-20, 15), [-5 * s, -100 * s, 760 * s],
+              colour_patches(25 * s) if panel_albedo is None else panel_albedo, (-55 * s, 55 * s, -25 * s, 25 * s)),
         Sphere([30 * s, 78 * s, 560 * s], 28 * s, (0.75, 0.55, 0.45)),
         Plane(np.eye(3), [0.0, 0.0, _pos("wall_mm", wall_mm)], 0.55),
     ]
