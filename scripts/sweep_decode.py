@@ -27,6 +27,7 @@ pixel with the simulator's truth (``r.proj_xy``):
     python scripts/sweep_decode.py --cache DIR --set baselines    # other baselines (33 frames)
     python scripts/sweep_decode.py --cache DIR --set mirrored     # the projector on the camera's left (21 frames)
     python scripts/sweep_decode.py --cache DIR --set panels       # the multi-object scene's panel plain (45 frames)
+    python scripts/sweep_decode.py --cache DIR --set layouts      # other depths, walls, albedos (32 frames)
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
 wrong non-edge pixels under it (all wrong regions with ``--edges``), and a total.  Progress lines go to stderr.  Renders are cached in ``--cache`` (npz).
@@ -47,7 +48,7 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 
 
 #: the frame sets of ``--set``: the sweep's 48 scenes, the same objects under room light, the clean preset
-SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels")
+SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels", "layouts")
 
 
 def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str, int, int, object]]:
@@ -68,6 +69,8 @@ def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str,
         return _mirrored_set(S, quick)
     if which == "panels":
         return _panel_set(S, quick)
+    if which == "layouts":
+        return _layout_set(S, quick)
     if which != "main":
         raise ValueError(f"unknown frame set {which!r}, expected one of {SETS}")
     out = []
@@ -181,6 +184,28 @@ def _panel_set(S, quick: bool) -> list:
             for seed in range(3):
                 out.append((f"multi_{d:.0f}_panel{a:g}_s{seed}", "typical", seed, 3,
                             lambda d=d, a=a: S.multi_object(d, panel_albedo=a)))
+    return out[::3] if quick else out
+
+
+#: the ``layouts`` set's depths (mm) and walls (times the depth)
+LAYOUT_DEPTHS_MM = (620.0, 680.0, 740.0, 800.0)
+LAYOUT_WALLS = (800.0 / 650.0, 1000.0 / 650.0)
+
+
+def _layout_set(S, quick: bool) -> list:
+    # the multi-object scene at four depths with its wall nearer and farther than the main set's
+    # (1.23 / 1.54 x the depth against 1.38), objects of albedo 0.7 or 0.4, the panel patched
+    # (seed 0) or plain (0.6, seed 1): 32 frames of layouts no rule was tuned on (twenty-seventh
+    # session; docs/method.md "Known limits")
+    out = []
+    for d in LAYOUT_DEPTHS_MM:
+        for w in LAYOUT_WALLS:
+            for a in (None, 0.4):
+                for seed in (0, 1):
+                    name = f"multi_{d:.0f}_wall{d * w:.0f}{'' if a is None else f'_a{a:g}'}{'_plain' if seed else ''}_s{seed}"
+                    out.append((name, "typical", seed, 3,
+                                lambda d=d, w=w, a=a, seed=seed: S.multi_object(d, wall_mm=d * w, albedo=a,
+                                                                                panel_albedo=0.6 if seed else None)))
     return out[::3] if quick else out
 
 

@@ -3007,13 +3007,14 @@ def test_sweep_script_frame_sets(tmp_path, capsys):
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     fran = 1 if sim.scenes.FRAN_PATH.is_file() else 0
-    assert [len(mod.scene_list(False, w)) for w in mod.SETS] == [44 + 4 * fran, 44, 14 + 2 * fran, 33, 21, 45]
+    assert [len(mod.scene_list(False, w)) for w in mod.SETS] == [44 + 4 * fran, 44, 14 + 2 * fran, 33, 21, 45, 32]
     rig, base = mod._rig_and_preset("typical/b150")   # the baselines set: the paper rig, projector moved
     assert base == "typical" and np.linalg.norm(rig.projector_centre) == pytest.approx(150.0)
     rig, base = mod._rig_and_preset("typical/b-200")  # the mirrored set: the projector on the left
     assert base == "typical" and rig.projector_centre[0] == pytest.approx(-200.0)
     panels = mod.scene_list(False, "panels")
     assert all(p == "typical" for _, p, *_ in panels) and len({n for n, *_ in panels}) == 45
+    assert len({n for n, *_ in mod.scene_list(False, "layouts")}) == 32
     mirrored = mod.scene_list(False, "mirrored")
     assert all(p == "typical/b-200" for _, p, *_ in mirrored) and len({n for n, *_ in mirrored}) == 21
     assert np.linalg.norm(mod._rig_and_preset("typical@warm0.25")[0].projector_centre) == pytest.approx(200.0)
