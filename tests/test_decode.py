@@ -2264,6 +2264,28 @@ def test_strip_welded_where_marker_gaps_repeat_is_rejected_back_to_a_decisive_ru
     assert (sm0.valid & ~sm.valid).sum() < 0.01 * sm0.valid.sum()
 
 
+@pytest.mark.slow
+def test_strip_rows_without_a_marker_go_with_the_rows_whose_markers_reject_it():
+    """Issue 3, the layouts set: the multi-object scene at 800 mm with its wall at 1 231 mm
+    (seed 0).  A strip of the wall under the box, 3-4 stripes wide, is welded to the box's region
+    where their stripes line up 20 stripes apart.  Its rows that reach the wall's marker are
+    rejected (``marker_conflicts``); the rows between, whose segments hold no marker at all, were
+    reported with the box's offset (80 pixels).  ``UnwrapParams.conflict_grow`` passes the
+    rejection up and down the region's segments that hold no agreeing run: none left."""
+    from gbscan.unwrap import UnwrapParams
+
+    r = sim.render(sim.paper_rig(), sim.scenes.multi_object(800.0, wall_mm=800.0 * 1000.0 / 650.0),
+                   render_pattern(PatternSpec()), "typical", seed=0)
+    sm = decode(r.image, PatternSpec())
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(conflict_grow=False)))
+    wrong, wrong0 = _wrong_off_edges(sm, r), _wrong_off_edges(sm0, r)
+    print(f"multi-object at 800 mm, wall 1231 mm: wrong pixels off depth edges {wrong0} -> {wrong}, "
+          f"reported {sm0.valid.sum()} -> {sm.valid.sum()}")
+    assert wrong0 >= 60 and wrong == 0
+    assert not (sm.valid & ~sm0.valid).any()
+    assert (sm0.valid & ~sm.valid).sum() < 0.005 * sm0.valid.sum()
+
+
 def test_sphere_with_a_welded_in_strip_is_indexed_without_it():
     """Issue 3, other baselines: the multi-object scene with the projector 175 mm from the camera
     (supersample 1).  Along the sphere's lower right rim its stripes meet the wall's, 22 stripes

@@ -262,6 +262,45 @@ def test_marker_conflicts_do_not_stop_at_a_coincidental_agreement():
         assert not bad[60:, :first * 3].any() and bad[60:, first * 3:].all(), (jump, shift)
 
 
+def test_grow_conflicts_follows_a_strip_through_rows_without_evidence():
+    """kernels.grow_conflicts: a rejected row's segment passes the rejection to the segments of
+    the same region above and below that hold no agreeing run, row after row; a segment with an
+    agreeing run, one of another region or of an unindexed one, or one not touching a rejected
+    pixel keeps its pixels."""
+    from gbscan import kernels
+
+    H, W = 7, 10
+    seg_map = np.full((H, W), -1, np.int32)
+    region = np.full((H, W), -1, np.int32)
+    #        row  u0 u1 region agree
+    table = [(0, 2, 7, 0, 0),    # 0: two rows above the rejected one, no evidence: grown (second pass)
+             (1, 2, 7, 0, 0),    # 1: right above it: grown
+             (2, 2, 7, 0, 0),    # 2: the rejected row
+             (3, 0, 9, 0, 1),    # 3: below it, an agreeing run of its own: kept
+             (4, 2, 7, 0, 0),    # 4: below that one (not touching a rejected pixel): kept
+             (5, 0, 4, 1, 0),    # 5: another region's, under row 4
+             (6, 0, 9, 2, 0)]    # 6: an unindexed region's
+    row, u0, u1, sreg, agree = (np.array(c) for c in zip(*table))
+    for k, (v, a, b, r, _) in enumerate(table):
+        seg_map[v, a:b + 1] = k
+        region[v, a:b + 1] = r
+    indexed = np.array([True, True, False])
+    rejected = np.zeros((H, W), bool)
+    rejected[2, 2:8] = True
+    rejected[5, 0:5] = True             # region 1's row: rejected, but row 6 is region 2's (unindexed)
+    grown = kernels.grow_conflicts(rejected, seg_map, region, row.astype(np.int32), u0.astype(np.int32),
+                                   u1.astype(np.int32), sreg.astype(np.int32), indexed, agree.astype(np.uint8))
+    assert grown.tolist() == [1, 0]
+    want = np.zeros((H, W), bool)
+    want[0:3, 2:8] = True
+    want[5, 0:5] = True
+    np.testing.assert_array_equal(rejected, want)
+    # nothing to grow from: nothing grown
+    none = np.zeros((H, W), bool)
+    assert kernels.grow_conflicts(none, seg_map, region, row.astype(np.int32), u0.astype(np.int32), u1.astype(np.int32),
+                                  sreg.astype(np.int32), indexed, agree.astype(np.uint8)).size == 0 and not none.any()
+
+
 def test_marker_conflicts_ignore_a_single_missed_marker():
     """A marker that a row fails to show (e.g. at a rim) is one disagreement, not a shifted stretch."""
     spec = PatternSpec()

@@ -145,7 +145,7 @@ def slope_verdicts(c, k, side, lr_near, lr_deep, comps, offsets, lim_near, lim_d
 @njit(cache=True, nogil=True)
 def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_ub,
                      seg_region, reg_offset, reg_indexed, is_marker, min_run_px, min_events, clean_level,
-                     confirm, region, persist_rows, extend=False):
+                     confirm, region, persist_rows, extend=False, seg_agree=np.zeros(0, np.uint8)):
     """Pixels of indexed regions whose own row contradicts the region's marker placement.
 
     A region's offset is fixed by all of its markers at once; a segment that crossed a depth edge
@@ -197,9 +197,14 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
     on past such runs to the first run that fits the region and not the shift (cyan on a marker
     stripe ``A`` with ``A + d`` none, or green/blue on a stripe ``A`` that is none with
     ``A + d`` one), which it includes (the boundary beside it belongs to neither surface).
+    ``seg_agree`` (n_seg,) uint8, when given, receives 1 for the segments of indexed regions with
+    an agreeing run (0 elsewhere; see :func:`grow_conflicts`).
     Returns the rejected spans, (n, 3) int32 rows ``(v, u_first, u_last)``.
     """
     H, W = labels.shape
+    want_agree = seg_agree.shape[0] == seg_row.shape[0]
+    if want_agree:
+        seg_agree[:] = 0
     spans = np.empty((16, 3), np.int32)
     n_sp = 0
     n_st = is_marker.shape[0]
@@ -240,6 +245,8 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
             rl[nr] = lab if b - a + 1 >= min_run_px else 0
             if e < 0:
                 any_bad = True
+            elif e > 0 and want_agree:
+                seg_agree[s] = 1
             nr += 1
             if j < seg_j1[s]:
                 a = j_ub[j]
@@ -321,6 +328,67 @@ def _cyan_rows(labels, relative, region, v, u, rr, k, most):
         n += 1
         q += 1
     return n
+
+
+@njit(cache=True, nogil=True)
+def grow_conflicts(rejected, seg_map, region, seg_row, seg_u0, seg_u1, seg_region, reg_indexed, seg_agree):
+    """Grow rejected pixels up and down a welded strip whose rows hold no evidence of their own.
+
+    ``rejected`` (H, W) bool, in place: the pixels :func:`marker_conflicts` rejects.  A segment of
+    an indexed region (``seg_region``, ``reg_indexed``) with no agreeing run (``seg_agree`` 0) and
+    no rejected pixel yet (a part rejected: its row's evidence bounds it) whose span touches a rejected pixel of the same region (``region`` (H, W) int32) in the row
+    above or below is rejected whole; repeated until nothing changes (a strip's rows without a
+    marker of their own -- segments of 3-4 stripes often have none -- go with the rows whose
+    markers reject it).  ``seg_map`` (H, W) int32 the segment of each pixel (-1 none).  Returns
+    the (n,) int64 segments rejected so.
+    """
+    H, W = rejected.shape
+    n_seg = seg_row.shape[0]
+    cand = np.zeros(n_seg, np.uint8)
+    n_c = 0
+    for s in range(n_seg):
+        k = seg_region[s]
+        if k >= 0 and reg_indexed[k] and seg_agree[s] == 0:
+            v = seg_row[s]
+            touched = False                 # (a segment with rejected pixels: its row's evidence bounds them)
+            for u in range(seg_u0[s], seg_u1[s] + 1):
+                if rejected[v, u]:
+                    touched = True
+                    break
+            if not touched:
+                cand[s] = 1
+                n_c += 1
+    out = np.empty(n_seg, np.int64)
+    n = 0
+    if n_c == 0:
+        return out[:0].copy()
+    changed = True
+    while changed:
+        changed = False
+        for s in range(n_seg):
+            if cand[s] == 0:
+                continue
+            v = seg_row[s]
+            k = seg_region[s]
+            hit = False
+            for vv in (v - 1, v + 1):
+                if vv < 0 or vv >= H:
+                    continue
+                for u in range(seg_u0[s], seg_u1[s] + 1):
+                    if rejected[vv, u] and region[vv, u] == k:
+                        hit = True
+                        break
+                if hit:
+                    break
+            if hit:
+                cand[s] = 0
+                for u in range(seg_u0[s], seg_u1[s] + 1):
+                    if seg_map[v, u] == s:
+                        rejected[v, u] = True
+                out[n] = s
+                n += 1
+                changed = True
+    return out[:n].copy()
 
 
 @njit(cache=True, nogil=True)
