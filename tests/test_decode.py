@@ -2216,6 +2216,19 @@ def test_panel_welded_along_its_rows_is_parted_by_the_tilt_step(baseline_mm, see
     assert np.abs(sm.column[both] - sm0.column[both]).max() < PatternSpec().stripe_px / 2
 
 
+def _rule_fixes_weld(what: str, r, off: DecodeParams, wrong_before: int, max_lost: float, only_masks: bool = True):
+    """Decode ``r`` as by default and with ``off`` (a rule off): the weld is there without the
+    rule (at least ``wrong_before`` wrong pixels off depth edges), gone with it, and it costs under
+    ``max_lost`` of the reported pixels (``only_masks``: and reports none the other did not)."""
+    sm = decode(r.image, PatternSpec())
+    sm0 = decode(r.image, PatternSpec(), off)
+    wrong, wrong0 = _wrong_off_edges(sm, r), _wrong_off_edges(sm0, r)
+    print(f"{what}: wrong pixels off depth edges {wrong0} -> {wrong}, reported {sm0.valid.sum()} -> {sm.valid.sum()}")
+    assert wrong0 >= wrong_before and wrong == 0
+    assert not only_masks or not (sm.valid & ~sm0.valid).any()
+    assert (sm0.valid & ~sm.valid).sum() < max_lost * sm0.valid.sum()
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("seed, wrong_off", [(1, 8), (2, 8)])
 def test_left_hand_rig_weld_across_a_broken_shadow_is_masked(seed, wrong_off):
@@ -2228,14 +2241,8 @@ def test_left_hand_rig_weld_across_a_broken_shadow_is_masked(seed, wrong_off):
     5 px: none left, for 0.1 % of the reported pixels."""
     r = sim.render(sim.paper_rig(baseline_mm=-200.0), sim.scenes.multi_object(700.0), render_pattern(PatternSpec()),
                    "typical", seed=seed)
-    sm = decode(r.image, PatternSpec())
-    sm0 = decode(r.image, PatternSpec(), DecodeParams(rim_end_reach_px=0))
-    wrong, wrong0 = _wrong_off_edges(sm, r), _wrong_off_edges(sm0, r)
-    print(f"left-hand rig, multi-object at 700 mm, seed {seed}: wrong pixels off depth edges {wrong0} -> {wrong}, "
-          f"reported {sm0.valid.sum()} -> {sm.valid.sum()}")
-    assert wrong0 >= wrong_off and wrong == 0
-    assert not (sm.valid & ~sm0.valid).any()                     # it only masks
-    assert (sm0.valid & ~sm.valid).sum() < 0.001 * sm0.valid.sum()
+    _rule_fixes_weld(f"left-hand rig, multi-object at 700 mm, seed {seed}", r, DecodeParams(rim_end_reach_px=0),
+                     wrong_off, 0.001)
 
 
 @pytest.mark.slow
@@ -2255,13 +2262,8 @@ def test_strip_welded_where_marker_gaps_repeat_is_rejected_back_to_a_decisive_ru
 
     r = sim.render(sim.paper_rig(), sim.scenes.multi_object(700.0, panel_albedo=albedo), render_pattern(PatternSpec()),
                    "typical", seed=seed)
-    sm = decode(r.image, PatternSpec())
-    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(conflict_extend=False)))
-    wrong, wrong0 = _wrong_off_edges(sm, r), _wrong_off_edges(sm0, r)
-    print(f"plain panel {albedo} at 700 mm, seed {seed}: wrong pixels off depth edges {wrong0} -> {wrong}, "
-          f"reported {sm0.valid.sum()} -> {sm.valid.sum()}")
-    assert wrong0 >= 40 and wrong == 0
-    assert (sm0.valid & ~sm.valid).sum() < 0.01 * sm0.valid.sum()
+    _rule_fixes_weld(f"plain panel {albedo} at 700 mm, seed {seed}", r,
+                     DecodeParams(unwrap=UnwrapParams(conflict_extend=False)), 40, 0.01, only_masks=False)
 
 
 @pytest.mark.slow
@@ -2276,14 +2278,8 @@ def test_strip_rows_without_a_marker_go_with_the_rows_whose_markers_reject_it():
 
     r = sim.render(sim.paper_rig(), sim.scenes.multi_object(800.0, wall_mm=800.0 * 1000.0 / 650.0),
                    render_pattern(PatternSpec()), "typical", seed=0)
-    sm = decode(r.image, PatternSpec())
-    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(conflict_grow=False)))
-    wrong, wrong0 = _wrong_off_edges(sm, r), _wrong_off_edges(sm0, r)
-    print(f"multi-object at 800 mm, wall 1231 mm: wrong pixels off depth edges {wrong0} -> {wrong}, "
-          f"reported {sm0.valid.sum()} -> {sm.valid.sum()}")
-    assert wrong0 >= 60 and wrong == 0
-    assert not (sm.valid & ~sm0.valid).any()
-    assert (sm0.valid & ~sm.valid).sum() < 0.005 * sm0.valid.sum()
+    _rule_fixes_weld("multi-object at 800 mm, wall 1231 mm", r, DecodeParams(unwrap=UnwrapParams(conflict_grow=False)),
+                     60, 0.005)
 
 
 def test_sphere_with_a_welded_in_strip_is_indexed_without_it():
