@@ -186,11 +186,11 @@ class UnwrapParams:
         them 367 -> 228); the 48 scenes 83.79 -> 83.76 %, room light 91.85 -> 91.83 %, clean
         89.93 -> 89.91 %, mirrored 88.83 -> 88.74 %, baselines 85.37 -> 85.30 %, none wrong
         before or after; scans (``scripts/coverage_study.py``, seeds 0-2) of the sphere, head and
-        real face unchanged, multi-object 0-0.1 points fewer.  Without the ``conflict_events`` floor on the shift (one
-        agreement enough, ties by the dozen) every set lost 0.1-0.2 points and the multi-object
-        scans 0.3-0.5.  The peel (:func:`peel_conflicts`) takes its stretches without it: the runs
-        it adds are no evidence either way, and taking them out too left a panel too small to
-        index (4 400 pixels dropped).  (Nor ``conflict_grow``, for the same reason.)
+        real face unchanged, multi-object 0-0.1 points fewer.  Without the ``conflict_events``
+        floor on the shift (one agreement enough, ties by the dozen) every set lost 0.1-0.2
+        points and the multi-object scans 0.3-0.5.  The peel (:func:`peel_conflicts`) takes its
+        stretches without it (nor ``conflict_grow``): the runs it adds are no evidence either
+        way, and taking them out too left a panel too small to index (4 400 pixels dropped).
     conflict_grow : the rejection of a row stretch passes to the rows above and below whose
         segments in the same region hold no agreeing run of their own, row after row
         (:func:`gbscan.kernels.grow_conflicts`): a welded strip 3-4 stripes wide has a marker in
@@ -1205,6 +1205,10 @@ def marker_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, patter
     ``conflict_persist_rows`` rows of the region is decisive alone as well: a marker of another
     surface, welded in as a short strip at a horizontal contact.
 
+    With ``conflict_extend`` a stretch does not stop at agreeing markers that fit its own shift
+    as well; with ``conflict_grow`` the rejection passes up and down to the region's segments
+    that hold no agreeing run (:func:`gbscan.kernels.grow_conflicts`; their spans are appended).
+
     Returns (n, 3) int32 spans ``(row, u_first, u_last)`` (inclusive; may overlap), empty for the
     pure pattern; :func:`spans_mask` turns them into an (H, W) bool image.
     """
@@ -1284,8 +1288,8 @@ def peel_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, pattern:
     if not cand.any():
         return idx, peeled
     forced = dataclasses.replace(idx, indexed=cand)    # the candidates, at their best offsets
-    # (without conflict_extend: the runs it adds fit both offsets, no evidence either way, and
-    # taking them out too left the rest too small to index: a panel of 4 400 px dropped)
+    # (without conflict_extend and conflict_grow: the runs they add are no evidence either way,
+    # and taking them out too left the rest too small to index: a panel of 4 400 px dropped)
     spans = marker_conflicts(labels, un, forced, pattern,
                              dataclasses.replace(params, conflict_extend=False, conflict_grow=False), gn, bn)
     if spans.size == 0:

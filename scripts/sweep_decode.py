@@ -47,7 +47,8 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
     sys.path.insert(0, str(ROOT))
 
 
-#: the frame sets of ``--set``: the sweep's 48 scenes, the same objects under room light, the clean preset
+#: the frame sets of ``--set``: the sweep's 48 scenes, the same objects under room light, the clean
+#: preset, other baselines, the rig mirrored, the multi-object scene's panel plain, other layouts of it
 SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels", "layouts")
 
 
