@@ -233,14 +233,10 @@ def marker_conflicts(labels, gn, bn, relative, seg_row, seg_u0, seg_u1, seg_j0, 
             rr = relative[v, a]
             A = rr + reg_offset[k]
             ar[nr] = A if 0 <= A < n_st else -1
-            if b - a + 1 >= min_run_px and lab != 0:
-                if 0 <= A < n_st:
-                    if lab == CYAN:
-                        e = 1 if is_marker[A] else -1
-                    elif is_marker[A]:
-                        e = -1
-                        if clean_level > 0 and _run_median_min(gn, bn, v, a, b, mb) < clean_level:
-                            e = -min_events
+            if b - a + 1 >= min_run_px and lab != 0 and ar[nr] >= 0:
+                e = _shift_event(lab, A, is_marker)
+                if e == -1 and lab != CYAN and clean_level > 0 and _run_median_min(gn, bn, v, a, b, mb) < clean_level:
+                    e = -min_events
             ev[nr] = e
             rl[nr] = lab if b - a + 1 >= min_run_px else 0
             if e < 0:
@@ -336,10 +332,10 @@ def grow_conflicts(rejected, seg_map, region, seg_row, seg_u0, seg_u1, seg_regio
 
     ``rejected`` (H, W) bool, in place: the pixels :func:`marker_conflicts` rejects.  A segment of
     an indexed region (``seg_region``, ``reg_indexed``) with no agreeing run (``seg_agree`` 0) and
-    no rejected pixel yet (a part rejected: its row's evidence bounds it) whose span touches a rejected pixel of the same region (``region`` (H, W) int32) in the row
-    above or below is rejected whole; repeated until nothing changes (a strip's rows without a
-    marker of their own -- segments of 3-4 stripes often have none -- go with the rows whose
-    markers reject it).  ``seg_map`` (H, W) int32 the segment of each pixel (-1 none).  Returns
+    no rejected pixel yet (a part rejected: its row's evidence bounds it) whose span touches a
+    rejected pixel of the same region (``region`` (H, W) int32) in the row above or below is
+    rejected whole; repeated until nothing changes (a strip's rows without a marker of their own
+    -- segments of 3-4 stripes often have none -- go with the rows whose markers reject it).  ``seg_map`` (H, W) int32 the segment of each pixel (-1 none).  Returns
     the (n,) int64 segments rejected so.
     """
     H, W = rejected.shape
@@ -393,9 +389,9 @@ def grow_conflicts(rejected, seg_map, region, seg_row, seg_u0, seg_u1, seg_regio
 
 @njit(cache=True, nogil=True)
 def _shift_event(lab, B, is_marker):
-    # marker_conflicts' event of a run of colour lab (0: too short) on absolute stripe B under a
-    # shift: +1 cyan on a marker stripe, -1 cyan off one or green/blue on one (or outside the
-    # pattern), 0 otherwise
+    # marker_conflicts' event of a run of colour lab (0: too short) on absolute stripe B (the
+    # region's, or under a shift): +1 cyan on a marker stripe, -1 cyan off one or green/blue on
+    # one (or outside the pattern), 0 otherwise
     n_st = is_marker.shape[0]
     if lab == 0:
         return 0
@@ -456,7 +452,7 @@ def _next_decisive(rl, ar, p, step, nr, is_marker, best):
     # no best shift (its event under the region 0 or +1, -1 under every best shift); -1 if none
     q = p + step
     while 0 <= q < nr:
-        if rl[q] != 0 and ar[q] >= 0 and (rl[q] == CYAN) == is_marker[ar[q]] and \
+        if rl[q] != 0 and ar[q] >= 0 and _shift_event(rl[q], ar[q], is_marker) >= 0 and \
                 _fits_shift(q, rl, ar, is_marker, best, False):
             return q
         q += step

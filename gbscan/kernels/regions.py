@@ -942,9 +942,20 @@ def rim_mask(column_rel, region, reg_off, reason, half_px, max_pull_px, end_px, 
                     if rim and rsn[u] == 0:
                         rsn[u] = rc
                         n_rim += 1
-        if end_px > 0 and end_reach > 0:
+        if end_px > 0 and end_reach > 0 and _dark_with_column(crel, reason[v]):
             n_rim += _reach_ends(crel, roww, reason[v], end_px, end_reach, rc)
     return n_rim
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _dark_with_column(crel, rsn):
+    # rim_mask's reach rule, whether the row has work: a pixel with reason 1..3 and a column (one
+    # interpolated across it), branch-free (most rows have none: the walk below then never runs)
+    anyd = np.uint8(0)
+    for u in range(crel.size):
+        r = rsn[u]
+        anyd |= np.uint8((crel[u] == crel[u]) & (r >= 1) & (r <= 3))
+    return anyd != 0
 
 
 @njit(cache=True, nogil=True)
