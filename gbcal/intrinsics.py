@@ -119,6 +119,17 @@ class CameraResult:
         """Plain dict for the calibration file's ``uncertainty`` field (1-sigma)."""
         return {"camera_std": {k: float(f"{v:.6g}") for k, v in self.std.items()}}
 
+    def calibration(self, board: Board, corner_refiner: str):
+        """The camera-only :class:`gbscan.calibfile.Calibration` ``gbcal camera`` writes (no planes;
+        ``created.board``, ``residuals`` with ``corner_refiner``, ``uncertainty``): a file that
+        ``gbcal calibrate --camera`` can hold a rig's camera to."""
+        from gbscan.calibfile import Calibration
+
+        return Calibration(self.camera, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0),
+                           created={"board": {"cols": board.cols, "rows": board.rows, "square_mm": board.square_mm}},
+                           residuals={**self.residuals_dict(), "corner_refiner": corner_refiner},
+                           uncertainty=self.uncertainty_dict())
+
 
 # -- inputs ------------------------------------------------------------------------------------
 def _as_points(item, board: Board, i: int) -> tuple[np.ndarray | None, tuple[int, int] | None]:

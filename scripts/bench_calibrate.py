@@ -141,7 +141,6 @@ def camera_alone(rig, n: int, seed: int, preset: str, corners: str):
     from gbcal.bundle import rodrigues
     from gbcal.intrinsics import calibrate_camera
     from gbscan import sim
-    from gbscan.calibfile import Calibration
 
     board = Board(11, 8, 25.0)
     cond = dataclasses.replace(sim.preset(preset), ambient_rgb=(1.0, 1.0, 1.0))
@@ -166,9 +165,7 @@ def camera_alone(rig, n: int, seed: int, preset: str, corners: str):
         det, _ = detect_with_reason(img, board, refiner=corners)
         if det is not None:
             dets.append(det)
-    res = calibrate_camera(dets, board, cam.size, model="k1k2p1p2")
-    return Calibration(res.camera, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0),
-                       residuals=res.residuals_dict(), uncertainty=res.uncertainty_dict())
+    return calibrate_camera(dets, board, cam.size, model="k1k2p1p2").calibration(board, corners)
 
 
 if __name__ == "__main__":

@@ -76,9 +76,7 @@ def run(args) -> int:
     import sys
     from pathlib import Path
 
-    import numpy as np
-
-    from gbscan.calibfile import Calibration, save_calibration
+    from gbscan.calibfile import save_calibration
     from gbscan.errors import GBError
     from gbscan.io import make_dir, read_image_gray, write_png
 
@@ -138,10 +136,7 @@ def run(args) -> int:
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
 
-    calib = Calibration(cam, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0),
-                        created={"board": {"cols": board.cols, "rows": board.rows, "square_mm": board.square_mm}},
-                        residuals={**res.residuals_dict(), "corner_refiner": args.corners},
-                        uncertainty=res.uncertainty_dict())
+    calib = res.calibration(board, args.corners)
     if preview is not None:
         obj = board.object_points()
         for v in res.views:
