@@ -1834,6 +1834,8 @@ def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: Patt
     idx.offset, idx.indexed = lk.offset, lk.indexed
     idx.evidence, idx.mismatch, idx.runner_up = evidence, mismatch, runner_up
     idx.markers_seen = _grow(idx.markers_seen, n_new)
+    if idx.stripe_margin is not None:
+        idx.stripe_margin = _grow(idx.stripe_margin, n_new)
     linked = lk.linked.tolist()
     idx.why = [("linked" if linked[k] else idx.why[k]) for k in range(n_reg)] + ["linked"] * ext
     un.region_px = _grow(un.region_px, n_new)
@@ -2465,6 +2467,10 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
     # a region whose markers do not fit because a strip of another surface is welded in beside
     # it: indexed without the stretches that contradict it (which the pass below then reports)
     idx, peeled = uw.peel_conflicts(cls.labels, un, idx, pattern, params.unwrap, cls.gn, cls.bn, stripe_range)
+    # the regions the repairs above left ambiguous whose runner-ups contradict enough more stripes
+    # (after them: indexing such regions first changed what the repairs did, and a retry no
+    # longer taken let a panel link 8 stripes off)
+    idx = uw.index_by_stripes(idx, params.unwrap)
     # stretches of rows whose own markers contradict their region's offset (a surface welded in
     # across a depth edge): reported as unindexed.  finish_pixels keeps any non-zero input reason.
     _mark_spans(cls.reason, uw.marker_conflicts(cls.labels, un, idx, pattern, params.unwrap, cls.gn, cls.bn),

@@ -133,6 +133,26 @@ class UnwrapParams:
         rules out any single misread marker stripe.  Sweep (``scripts/sweep_decode.py``, 44 scenes):
         reported 83.20 -> 83.89 %, no index error added (the 7 wrong pixels it adds are a linked
         65-px fragment of a Bayer frame, half a stripe off under a horizontal crease).
+    index_margin_stripes : a region left :data:`AMBIGUOUS` by the pixel margin above is indexed
+        when every other candidate offset contradicts at least this many more *stripes* than the
+        best (0: the pixel margin alone).  A stripe contradicts an offset when it shows
+        ``min_marker_px`` cyan pixels where the offset puts a plain stripe, as many green/blue
+        pixels where it puts a marker, or as many pixels outside the pattern
+        (:func:`gbscan.kernels.score_offsets`, ``RegionIndex.stripe_margin``).  The pixel margin
+        weighs each marker by its pixels: the multi-object scene's lower sphere sees four markers,
+        the outer two short (its top and bottom); its runner-up contradicts exactly those and its
+        short last stripe, 152 px against a margin of 233 px -- 3 % of the frame's lit pixels left
+        unindexed.  In stripes the runner-up is 3 worse.  Over the 435 frames of the sweep caches,
+        the regions left ambiguous whose pixels lie on one surface: a stripe margin of 1 would
+        index 6 of 1596 wrongly, 2 none of 900.  The decoder applies it last (:func:`index_by_stripes`,
+        after the weld repairs: retry, split, peel), so the repairs see what they saw before:
+        applied inside the indexing it spared the retry of a frame whose re-unwrapping had kept a
+        panel unlinked, and the panel linked 8 stripes off (the multi-object scene at a 140-mm
+        baseline), and it let a split cut a region whose part was then indexed 12 stripes off
+        (175 mm).  ``scripts/sweep_decode.py``, no pixel on a wrong stripe added in any set:
+        reported 83.76 -> 85.12 % (main), 91.83 -> 92.66 (room light), 89.91 -> 90.72 (clean),
+        85.30 -> 87.07 (baselines), 88.74 -> 91.76 (mirrored), 87.95 -> 89.13 (panels),
+        83.31 -> 84.12 % (layouts).  Their ``why`` is :data:`STRIPE_OK`.
     max_mismatch : largest acceptable mismatch of the best offset, as a fraction of the evidence.
     conflict_run_px : a run of at least this many px whose marker/non-marker colour contradicts its
         region's offset is a disagreement (:func:`marker_conflicts`).
@@ -383,6 +403,7 @@ class UnwrapParams:
     min_markers: int = 2
     index_margin: float = 0.25
     index_margin_events: float = 1.5
+    index_margin_stripes: int = 2
     max_mismatch: float = 0.05
     conflict_run_px: int = 2
     conflict_events: int = 2
@@ -445,6 +466,9 @@ class UnwrapParams:
         if not float(self.index_margin_events) >= 0:
             raise GBError(f"UnwrapParams.index_margin_events must be >= 0 (0: the fixed index_margin only), got "
                           f"{self.index_margin_events}")
+        if int(self.index_margin_stripes) < 0:
+            raise GBError(f"UnwrapParams.index_margin_stripes must be >= 0 (0: the pixel margin alone), got "
+                          f"{self.index_margin_stripes}")
         if int(self.link_hang_rows) < 0:
             raise GBError(f"UnwrapParams.link_hang_rows must be >= 0 (0 disables), got {self.link_hang_rows}")
         if int(self.link_grad_skip_rows) < 0:
@@ -986,6 +1010,8 @@ def unwrap(labels: np.ndarray, params: UnwrapParams = UnwrapParams(), locate=Non
 MISFIT = "markers do not fit the pattern"
 #: RegionIndex.why of a region whose runner-up offset is not clearly worse than the best
 AMBIGUOUS = "ambiguous offset"
+#: RegionIndex.why of a region indexed by ``UnwrapParams.index_margin_stripes`` (its pixel margin short)
+STRIPE_OK = "ok (stripe margin)"
 
 
 @dataclass
@@ -998,6 +1024,8 @@ class RegionIndex:
     evidence : marker-related pixel votes (cyan seen + cyan expected) of the best offset.
     mismatch, runner_up : mismatching votes of the best and the second-best offset.
     why : str per region ("ok", "no markers in pattern", "too few markers", "ambiguous", ...).
+    stripe_margin : how many more stripes every other candidate offset contradicts than the best
+        (:func:`gbscan.kernels.score_offsets`; None where not scored so).
     """
 
     offset: np.ndarray
@@ -1007,6 +1035,7 @@ class RegionIndex:
     mismatch: np.ndarray
     runner_up: np.ndarray
     why: list
+    stripe_margin: np.ndarray | None = None
 
 
 #: index_regions scores the offsets in one compiled pass (kernels.score_offsets); False runs the
@@ -1092,7 +1121,7 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
     is_marker = pattern.is_marker()
     out = RegionIndex(np.zeros(n_regions, np.int64), np.zeros(n_regions, bool), np.zeros(n_regions, np.int64),
                       np.zeros(n_regions, np.int64), np.zeros(n_regions, np.int64), np.zeros(n_regions, np.int64),
-                      ["unindexed"] * n_regions)
+                      ["unindexed"] * n_regions, np.zeros(n_regions, np.int64))
     if n_regions == 0:
         return out
     if not pattern.markers or not is_marker.any():
@@ -1116,12 +1145,13 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
                                                          _VOLUME_STEP)
     frac = float(params.volume_frac)
     if _SCORE_COMPILED:
-        status, seen, offset, evidence, mismatch, runner_up = kernels.score_offsets(
+        status, seen, offset, evidence, mismatch, runner_up, stripes = kernels.score_offsets(
             rmin, rmax, start, hc, hg, is_marker, int(params.min_marker_px), cover, cstart, npx, frac)
         out.markers_seen[:] = seen
         scored = status >= 3
         out.offset[scored], out.evidence[scored] = offset[scored], evidence[scored]
         out.mismatch[scored], out.runner_up[scored] = mismatch[scored], runner_up[scored]
+        out.stripe_margin = np.where(scored, stripes, 0)
         code = _index_tests(params, status, seen, evidence, mismatch, runner_up)
         out.indexed[:] = code == 0
         out.why = [_index_why(int(code[k]), int(status[k]), int(seen[k]), params) for k in range(n_regions)]
@@ -1156,6 +1186,13 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
         mis_all = (np.correlate(notM, n_c, mode="valid") + np.correlate(M, n_g, mode="valid")
                    + np.correlate(O, n_g, mode="valid"))
         exp_all = np.correlate(M, n_c + n_g, mode="valid")
+        # stripes contradicting each candidate (cyan on a plain stripe, green/blue on a marker,
+        # anything outside the pattern; min_marker_px pixels each)
+        T = params.min_marker_px
+        plain = 1 - M - O
+        bad_all = (np.correlate(plain, (n_c >= T).astype(np.int64), mode="valid")
+                   + np.correlate(M, (n_g >= T).astype(np.int64), mode="valid")
+                   + np.correlate(O, (tot >= T).astype(np.int64), mode="valid"))
         # mis_all[i]: relative r0 sits at extended position i -> absolute A0 = i - pad
         A0 = np.arange(mis_all.size) - pad
         okA = (A0 + c0 >= -2) & (A0 + c1 <= n_st + 1) & ((A0 - r0) % 2 == 0)
@@ -1172,11 +1209,15 @@ def index_regions(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, 
         else:
             inside = np.ones(cand.size, bool)
         others = (np.arange(cand.size) != best) & inside
-        second = int(mis[others].min()) if others.any() else np.iinfo(np.int64).max // 4
+        big = np.iinfo(np.int64).max // 4
+        second = int(mis[others].min()) if others.any() else big
+        bad = bad_all[okA]
+        stripes = int(bad[others].min() - bad[best]) if others.any() else big
         out.offset[k] = int(cand[best]) - r0
         out.evidence[k] = ev
         out.mismatch[k] = b_mis
         out.runner_up[k] = second
+        out.stripe_margin[k] = stripes
         st = 3 if inside[best] else 4
         code = int(_index_tests(params, [st], [seen], [ev], [b_mis], [second])[0])
         out.indexed[k] = code == 0
@@ -1320,6 +1361,21 @@ def peel_conflicts(labels: np.ndarray, un: Unwrapped, idx: RegionIndex, pattern:
     return new, peeled
 
 
+def index_by_stripes(idx: RegionIndex, params: UnwrapParams) -> RegionIndex:
+    """The regions ``idx`` left :data:`AMBIGUOUS` whose stripe margin (``idx.stripe_margin``)
+    reaches ``params.index_margin_stripes``, indexed (why :data:`STRIPE_OK`): a new index, or
+    ``idx`` itself when there is none."""
+    if params.index_margin_stripes <= 0 or idx.stripe_margin is None or not idx.indexed.size:
+        return idx
+    take = np.array([w == AMBIGUOUS for w in idx.why], bool) & (idx.stripe_margin >= params.index_margin_stripes)
+    if not take.any():
+        return idx
+    new = dataclasses.replace(idx, indexed=idx.indexed | take, why=list(idx.why))
+    for k in np.flatnonzero(take).tolist():
+        new.why[k] = STRIPE_OK
+    return new
+
+
 def _same_maps(where: str, **maps) -> None:
     """GBError unless the (H, W) maps given by name are 2-D arrays of one shape (the compiled
     passes read every pixel of the first map's shape in the others)."""
@@ -1372,7 +1428,7 @@ def split_row(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, k: i
     pc[0::2], pg[0::2] = hc[cut], hg[cut]
     pc[1::2], pg[1::2] = hc[-1] - hc[cut], hg[-1] - hg[cut]
     is_marker = pattern.is_marker()
-    status, seen, offset, evidence, mismatch, runner_up = kernels.score_offsets(
+    status, seen, offset, evidence, mismatch, runner_up, _ = kernels.score_offsets(
         np.full(2 * m, r0, np.int64), np.full(2 * m, r0 + S - 1, np.int64), np.arange(2 * m + 1, dtype=np.int64) * S,
         pc.ravel(), pg.ravel(), is_marker, int(params.min_marker_px), np.zeros(0, np.int64),
         np.zeros(2 * m + 1, np.int64), np.zeros(2 * m, np.int64), float(params.volume_frac))

@@ -394,8 +394,10 @@ def test_cli_decode_writes_npz_previews_and_summary(tmp_path, capsys):
 
 def test_cli_decode_working_volume(tmp_path, capsys):
     """``gbscan decode --calib C --depth-range MIN MAX``: the working volume of the scan command;
-    on the multi-object scene it indexes regions the markers alone leave ambiguous.  Without
-    --calib, or with an empty range, one clear error and nothing written."""
+    on the multi-object scene it indexes regions the markers alone leave ambiguous (with the
+    pixel margin alone: the stripe margin, ``unwrap.index_margin_stripes``, indexes most of them
+    without a volume).  Without --calib, or with an empty range, one clear error and nothing
+    written."""
     from gbscan import sim
     from gbscan.calibfile import calibration_from_rig, save_calibration
     from gbscan.cli import main
@@ -407,8 +409,10 @@ def test_cli_decode_working_volume(tmp_path, capsys):
     cal = tmp_path / "calib.yaml"
     save_calibration(cal, calibration_from_rig(sim.paper_rig(), PatternSpec()))
     out0, out1 = tmp_path / "plain.npz", tmp_path / "volume.npz"
-    assert main(["decode", str(img), "-o", str(out0), "--calib", str(cal)]) == 0
-    assert main(["decode", str(img), "-o", str(out1), "--calib", str(cal), "--depth-range", "400", "1200"]) == 0
+    pixel_margin = ["--decode-param", "unwrap.index_margin_stripes=0"]
+    assert main(["decode", str(img), "-o", str(out0), "--calib", str(cal), *pixel_margin]) == 0
+    assert main(["decode", str(img), "-o", str(out1), "--calib", str(cal), "--depth-range", "400", "1200",
+                 *pixel_margin]) == 0
     capsys.readouterr()
     with np.load(out0) as a, np.load(out1) as b:
         assert (b["mask"] == 0).sum() > (a["mask"] == 0).sum() + 1000
@@ -1215,13 +1219,15 @@ def test_small_regions_indexed_through_neighbours_never_wrong():
     """Issue 3/5: regions too small (or with too few markers) to be indexed alone get their offset
     from the reported pixels around them when the column continues across (unwrap.link_components).
     The hard preset breaks the plane into many such pieces: measured 70.1% -> 83.8% coverage, every
-    linked pixel on its true stripe; the multi-object scene (depth edges) links 6 regions, none wrong."""
+    linked pixel on its true stripe; the multi-object scene (depth edges) links 6 regions, none wrong.
+    (With the pixel margin alone: the stripe margin, ``index_margin_stripes``, indexes some of the
+    multi-object scene's regions by their markers instead.)"""
     from gbscan.unwrap import UnwrapParams
 
     for scene, preset, gain in (("plane", "hard", 0.10), ("multi_object", "typical", 0.01)):
         r = render(scene, preset)
-        sm = decode(r.image, PatternSpec(), keep_stages=True)
-        sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(link_votes=0)))
+        sm = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(index_margin_stripes=0)), keep_stages=True)
+        sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(link_votes=0, index_margin_stripes=0)))
         s, s0 = scores(sm, r), scores(sm0, r)
         assert s["coverage"] > s0["coverage"] + gain, (scene, s, s0)
         assert sm.stats["regions_linked"] > 0 and sm.stats["link_pixels_linked"] > 0
@@ -1354,7 +1360,7 @@ def test_compiled_offset_scores_match_the_correlation_form(monkeypatch):
             monkeypatch.setattr(uw, "_SCORE_COMPILED", compiled)
             got.append(uw.index_regions(labels, relative, region, n_reg, spec, params))
         a, b = got
-        for f in ("offset", "indexed", "markers_seen", "evidence", "mismatch", "runner_up"):
+        for f in ("offset", "indexed", "markers_seen", "evidence", "mismatch", "runner_up", "stripe_margin"):
             np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
         assert a.why == b.why
     assert set(a.why) >= {"empty region", "region too thin"}
@@ -1749,14 +1755,17 @@ def test_rows_of_a_linked_region_are_checked_against_its_markers(frame, monkeypa
     surfaces before any linking on both frames; and without the tilt-step cut, ``tilt_step``,
     which parts them at the silhouette before any linking too; and without the peel of misfit
     regions, ``peel_max_frac``, which on frame 8 indexes two regions by their own markers once
-    their contradicting stretches are out, so that the regular check drops the sphere's rows.)"""
+    their contradicting stretches are out, so that the regular check drops the sphere's rows; and
+    without the stripe margin, ``index_margin_stripes``, which on frame 8 indexes the wall by its
+    own markers as well.)"""
     import gbscan.unwrap as uw
 
     r = _moving_frame(650.0 + 5.0 * frame, frame)
     assert _wrong_off_edges(decode(r.image, PatternSpec()), r) == 0  # the defaults
     unguarded = DecodeParams(**dict(SIGMA2, rim_guard_px=0, rim_end_rows=0, rim_lit_rows=0),
                              unwrap=uw.UnwrapParams(bridge_ratio=0.0, index_margin_events=0.0,
-                                                    retry_spacing_ratio=0.0, tilt_step=0.0, peel_max_frac=0.0))
+                                                    retry_spacing_ratio=0.0, tilt_step=0.0, peel_max_frac=0.0,
+                                                    index_margin_stripes=0))
     sm = decode(r.image, PatternSpec(), unguarded)
     assert sm.stats["regions_linked"] >= 1
     orig = uw.marker_conflicts
@@ -1999,7 +2008,9 @@ def test_weld_across_an_unlocated_boundary_is_cut(scene, sigma_px, wrong_without
     ``retry_spacing_ratio``, which cuts the 760 mm weld as well, and without the confirmed
     marker bound of the row check, ``conflict_confirm``, which rejects the 760 mm weld's rows
     too, and without the tilt-step cut, ``tilt_step``, which parts frame 5's weld as well; and
-    without the end rule's reach, ``rim_end_reach_px``, which masks a few of its pixels.)"""
+    without the end rule's reach, ``rim_end_reach_px``, which masks a few of its pixels; and
+    without the stripe margin, ``index_margin_stripes``, which indexes part of the 760 mm frame
+    around the weld otherwise.)"""
     import dataclasses
 
     from gbscan.unwrap import UnwrapParams
@@ -2013,7 +2024,8 @@ def test_weld_across_an_unlocated_boundary_is_cut(scene, sigma_px, wrong_without
     sm = decode(r.image, PatternSpec(), DecodeParams(**found))
     sm0 = decode(r.image, PatternSpec(), DecodeParams(**found,
                                                       unwrap=UnwrapParams(bridge_ratio=0.0, retry_spacing_ratio=0.0,
-                                                                          conflict_confirm=False, tilt_step=0.0)))
+                                                                          conflict_confirm=False, tilt_step=0.0,
+                                                                          index_margin_stripes=0)))
     assert _wrong_off_edges(decode(r.image, PatternSpec(), DecodeParams(blur_sigma_along_px=sigma_px)), r) == 0
     assert _wrong_off_edges(sm0, r) > wrong_without  # the weld is there without the rule
     assert _wrong_off_edges(sm, r) == 0
@@ -2042,9 +2054,12 @@ def test_regions_welded_at_a_silhouette_are_unwrapped_again_with_weaker_cuts():
         sm = decode(r.image, PatternSpec())
         # (the split at a contact row, UnwrapParams.split_rows, parts this weld too: without the
         # retry the ambient frame keeps 84.1 %; and the peel, peel_max_frac, indexes the ambient
-        # 0.05 frame's region without its welded stretches, 84.9 %; all three off here)
+        # 0.05 frame's region without its welded stretches, 84.9 %; and the stripe margin,
+        # index_margin_stripes, indexes the ambient 0.05 frame's other ambiguous regions: all
+        # four off here)
         sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(retry_spacing_ratio=0, split_rows=0,
-                                                                              peel_max_frac=0.0)))
+                                                                              peel_max_frac=0.0,
+                                                                              index_margin_stripes=0)))
         s, s0 = scores(sm, r), scores(sm0, r)
         assert s0["coverage"] < before and s["coverage"] > after, (ambient, s0, s)     # measured 45 -> 84 / 82 -> 85 %
         assert _wrong_off_edges(sm, r) == 0 and s["index_ok"] == 1.0
@@ -2071,7 +2086,9 @@ def test_region_welded_at_a_lined_up_contact_row_is_split_by_its_markers():
     cond = dataclasses.replace(sim.preset("typical"), supersample=1)
     r = sim.render(sim.paper_rig(), sim.scenes.multi_object(685.0), render_pattern(PatternSpec()), cond, seed=7)
     sm = decode(r.image, PatternSpec())
-    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(split_rows=0)))
+    # (without the stripe margin, index_margin_stripes, in the counterfactual: it indexes the
+    # frame's other ambiguous regions, 80.2 % reported without the split)
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(split_rows=0, index_margin_stripes=0)))
     s, s0 = scores(sm, r), scores(sm0, r)
     assert s0["coverage"] < 0.8 and s["coverage"] > 0.85, (s0, s)          # measured 77.6 -> 87.2 %
     assert sm.stats["weld_split_px"] > 10000 and sm0.stats["weld_split_px"] == 0
@@ -2386,14 +2403,38 @@ def test_index_margin_in_marker_events_indexes_a_four_marker_panel():
     assert _margin_px(p, 1000, 2) == pytest.approx(250.0)                 # 2 markers: 25 % rules
     assert _margin_px(UnwrapParams(index_margin_events=0), 2766, 4) == pytest.approx(691.5)
     r = _moving_frame(690.0, 8)
-    sm = decode(r.image, PatternSpec())
-    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(index_margin_events=0)))
+    # (the stripe margin, index_margin_stripes, indexes the panel as well: off in both)
+    sm = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(index_margin_stripes=0)))
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(index_margin_events=0,
+                                                                          index_margin_stripes=0)))
     s, s0 = scores(sm, r), scores(sm0, r)
     print(f"moving frame 8 coverage: fixed margin {s0['coverage']:.4f}, in events {s['coverage']:.4f}")
     assert s["coverage"] > s0["coverage"] + 0.03
     assert _wrong_off_edges(sm, r) == 0 and s["index_ok"] == 1.0
     with pytest.raises(GBError, match="index_margin_events"):
         UnwrapParams(index_margin_events=-1)
+
+
+def test_index_margin_stripes_indexes_the_multi_object_scenes_lower_sphere():
+    """UnwrapParams.index_margin_stripes end to end: the multi-object scene's lower sphere (object
+    3; seed 0) sees four markers, its runner-up offset contradicts three stripes where the pixel
+    margin counts them as about one marker event: ambiguous by pixels, indexed by stripes -- the
+    sphere reported, every pixel of it on its stripe, the frame's coverage up by 2 points."""
+    from gbscan.unwrap import STRIPE_OK, UnwrapParams
+
+    r = render("multi_object")
+    sm = decode(r.image, PatternSpec(), keep_stages=True)
+    sm0 = decode(r.image, PatternSpec(), DecodeParams(unwrap=UnwrapParams(index_margin_stripes=0)))
+    s, s0 = scores(sm, r), scores(sm0, r)
+    print(f"multi-object coverage: pixel margin alone {s0['coverage']:.4f}, with the stripe margin {s['coverage']:.4f}")
+    assert s["coverage"] > s0["coverage"] + 0.02
+    assert _wrong_off_edges(sm, r) == 0 and s["index_ok"] == 1.0
+    sphere = r.lit & ~r.depth_edge & (r.object_id == 3)
+    assert sm0.valid[sphere].mean() < 0.1 < 0.75 < sm.valid[sphere].mean()
+    idx = sm.stages["index"]
+    k = np.bincount(sm.region[sphere & sm.valid]).argmax()
+    assert idx.why[k] == STRIPE_OK and 0 < idx.runner_up[k] - idx.mismatch[k] and idx.stripe_margin[k] >= 2
+    assert sm.stats["region_why"].get(STRIPE_OK, 0) >= 1
 
 
 def test_step_guard_brightness_is_the_clipped_row_mean_of_green_plus_blue():

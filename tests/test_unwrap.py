@@ -160,6 +160,7 @@ def test_index_regions_working_volume_rules_out_far_runner_ups(compiled, monkeyp
     p = uw.UnwrapParams(min_marker_px=5)
     idx = uw.index_regions(lab, rel, reg, 1, spec, p)
     assert idx.why[0] == "ambiguous offset" and idx.offset[0] == 30 and idx.runner_up[0] == idx.mismatch[0] == 0
+    assert idx.stripe_margin[0] == 0  # the far offset contradicts no stripe either: no stripe margin
 
     def volume(lo, hi):
         r = np.empty((2, *lab.shape), np.float32)
@@ -1930,6 +1931,45 @@ def test_best_vote_offsets_equals_numpy_group_by():
         np.minimum.at(r_lo, seg_comp[cs], seg_row[cs].astype(np.int64))
         np.maximum.at(r_hi, seg_comp[cs], seg_row[cs].astype(np.int64))
         np.testing.assert_array_equal(kernels.component_row_span(seg_comp, seg_row, bc), r_hi[bc] - r_lo[bc] + 1)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_index_margin_stripes_indexes_a_sphere_whose_runner_up_contradicts_its_short_markers(compiled, monkeypatch):
+    """UnwrapParams.index_margin_stripes (:func:`index_by_stripes`): the multi-object scene's
+    lower sphere shows stripes 54-73 with markers 54, 59, 65, 70, the outer two short (its top and
+    bottom) like its last stripe.  Offset +50 puts markers on 59 and 65 too (109, 115): it
+    contradicts only the two short markers and the short last stripe (123 is a marker), fewer
+    pixels than the pixel margin (1.5 marker events of the average marker) asks -- ambiguous.
+    Counted in stripes every other offset contradicts at least 3 more than the best: indexed, at
+    the right offset, up to a stripe margin of 3, not at 4.  Compiled and reference scoring agree."""
+    monkeypatch.setattr(uw, "_SCORE_COMPILED", compiled)
+    spec = PatternSpec()
+    rows = 30
+    lab = stripe_image(spec, 54, 20, rows=rows)
+    rel = np.repeat(np.arange(20), 3)[None].repeat(rows, 0).astype(np.int32)  # true index = rel + 54
+    reg = np.zeros(lab.shape, np.int32)
+    for s in (0, 16, 19):           # markers 54 and 70 and stripe 73: 5 rows of 30
+        reg[5:, 3 * s:3 * s + 3] = -1
+    p = uw.UnwrapParams()
+    idx = uw.index_regions(lab, rel, reg, 1, spec, p)
+    assert idx.why[0] == uw.AMBIGUOUS and idx.offset[0] == 54 and idx.markers_seen[0] == 4
+    assert idx.runner_up[0] - idx.mismatch[0] == 45 < uw._margin_px(p, idx.evidence[0], 4)
+    assert idx.stripe_margin[0] == 3
+    new = uw.index_by_stripes(idx, p)
+    assert new.indexed[0] and new.why[0] == uw.STRIPE_OK and new.offset[0] == 54
+    assert not idx.indexed[0] and idx.why[0] == uw.AMBIGUOUS  # a new index; the old one is kept
+    assert uw.index_by_stripes(idx, uw.UnwrapParams(index_margin_stripes=3)).indexed[0]
+    for q in (uw.UnwrapParams(index_margin_stripes=4), uw.UnwrapParams(index_margin_stripes=0)):
+        assert uw.index_by_stripes(idx, q) is idx
+    # only ambiguous regions: one whose markers do not fit, or too few, stays unindexed
+    other = dataclasses.replace(idx, why=[uw.MISFIT])
+    assert uw.index_by_stripes(other, p) is other
+    # the stripes are counted at min_marker_px: with 16 px the short markers (15 px) are not seen,
+    # nor can they contradict an offset
+    idx = uw.index_regions(lab, rel, reg, 1, spec, uw.UnwrapParams(min_marker_px=16))
+    assert idx.markers_seen[0] == 2 and not uw.index_by_stripes(idx, p).indexed[0]
+    with pytest.raises(GBError, match="index_margin_stripes"):
+        uw.UnwrapParams(index_margin_stripes=-1)
 
 
 def test_index_tests_equals_np_select():

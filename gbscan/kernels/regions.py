@@ -335,7 +335,12 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, 
     every candidate is inside when ``npx[k]`` is 0: no prior).
     Candidate absolute index ``A`` of relative ``rmin``: ``A + c0 >= -2``, ``A + c1 <= n_st + 1``
     (``c0, c1`` the core's ends), ``A - rmin`` even; positions outside the pattern mismatch every
-    observation."""
+    observation.  Also returns ``stripe_margin`` (n_reg,) int64: how many more *stripes* every
+    other candidate inside the working volume contradicts than the best (``big`` when there is
+    none; 0 for unscored regions).  A stripe (relative index) contradicts a candidate when it
+    shows at least ``min_marker_px`` cyan pixels where the candidate puts a plain stripe, at
+    least ``min_marker_px`` green/blue pixels where it puts a marker, or at least
+    ``min_marker_px`` pixels outside the pattern."""
     n_reg = rmin.shape[0]
     n_st = is_marker.shape[0]
     status = np.zeros(n_reg, np.int64)
@@ -344,6 +349,7 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, 
     evidence = np.zeros(n_reg, np.int64)
     mismatch = np.zeros(n_reg, np.int64)
     runner = np.zeros(n_reg, np.int64)
+    stripes = np.zeros(n_reg, np.int64)
     big = np.iinfo(np.int64).max // 4
     for k in range(n_reg):
         r0 = rmin[k]
@@ -353,6 +359,7 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, 
         span = r1 - r0 + 1
         cand_A = np.empty(n_st + span + 2, np.int64)
         cand_mis = np.empty(n_st + span + 2, np.int64)
+        cand_bad = np.empty(n_st + span + 2, np.int64)
         b0 = start[k]
         n_seen = 0
         c0 = -1
@@ -374,6 +381,7 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, 
         best_mis = big
         best_A = 0
         best_exp = 0
+        best_bad = 0
         n_cand = 0
         # A = absolute index of relative r0; the extended position i = A + span (pad = span)
         for A in range(-span, n_st + 1):
@@ -381,39 +389,50 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, 
                 continue
             mis = 0
             exp = 0
+            bad = 0
             for j in range(span):
                 a = A + j
                 c = n_c[b0 + j]
                 g = n_g[b0 + j]
                 if a < 0 or a >= n_st:      # outside: not a marker (cyan mismatches), O = 1
                     mis += c + g
+                    if c + g >= min_marker_px:
+                        bad += 1
                 elif is_marker[a]:
                     mis += g
                     exp += c + g
+                    if g >= min_marker_px:
+                        bad += 1
                 else:
                     mis += c
+                    if c >= min_marker_px:
+                        bad += 1
             cand_A[n_cand] = A
             cand_mis[n_cand] = mis
+            cand_bad[n_cand] = bad
             n_cand += 1
             if mis < best_mis:
                 best_mis = mis
                 best_A = A
                 best_exp = exp
+                best_bad = bad
         if n_cand == 0:
             continue
         second = big
+        fewest = big
         need = frac * npx[k]
         for i in range(n_cand):
-            if cand_A[i] != best_A and cand_mis[i] < second and \
-                    (npx[k] == 0 or cover[cstart[k] + cand_A[i] + span] >= need):
-                second = cand_mis[i]
+            if cand_A[i] != best_A and (npx[k] == 0 or cover[cstart[k] + cand_A[i] + span] >= need):
+                second = min(second, cand_mis[i])
+                fewest = min(fewest, cand_bad[i])
         inside = npx[k] == 0 or cover[cstart[k] + best_A + span] >= need
         status[k] = 3 if inside else 4
         offset[k] = best_A - r0
         evidence[k] = sum_c + best_exp
         mismatch[k] = best_mis
         runner[k] = second
-    return status, seen, offset, evidence, mismatch, runner
+        stripes[k] = fewest - best_bad if fewest < big else big
+    return status, seen, offset, evidence, mismatch, runner, stripes
 
 
 @njit(cache=True, nogil=True)
