@@ -142,10 +142,13 @@ class UnwrapParams:
         weighs each marker by its pixels: the multi-object scene's lower sphere sees four markers,
         the outer two short (its top and bottom); its runner-up contradicts exactly those and its
         short last stripe, 152 px against a margin of 233 px -- 3 % of the frame's lit pixels left
-        unindexed.  In stripes the runner-up is 3 worse.  Over the 435 frames of the sweep caches,
-        the regions left ambiguous whose pixels lie on one surface: a stripe margin of 1 would
-        index 6 of 1596 wrongly, 2 none of 900.  The decoder applies it last (:func:`index_by_stripes`,
-        after the weld repairs: retry, split, peel), so the repairs see what they saw before:
+        unindexed.  In stripes the runner-up is 3 worse.  Over the seven sweep sets (239 frames,
+        ``scripts/index_margin_study.py``), the scorings of regions left ambiguous whose pixels
+        lie on one surface: a stripe margin of 1 would index 6 of 713 wrongly, 2 none of 452.
+        2 is also the smallest margin no single misread stripe can turn into a wrong index: one
+        misread moves the best's count and a runner-up's by one each, to a tie at worst.  The
+        decoder applies it last (:func:`index_by_stripes`, after the weld repairs: retry, split,
+        peel), so the repairs see what they saw before:
         applied inside the indexing it spared the retry of a frame whose re-unwrapping had kept a
         panel unlinked, and the panel linked 8 stripes off (the multi-object scene at a 140-mm
         baseline), and it let a split cut a region whose part was then indexed 12 stripes off
