@@ -2307,3 +2307,38 @@ def test_tilt_params_are_validated():
         with pytest.raises(GBError, match="tilt_"):
             uw.UnwrapParams(**kw)
     uw.UnwrapParams(tilt_step=0.0, tilt_break_min=0)
+
+
+def test_index_margin_study_records_regions_against_the_truth(capsys):
+    """scripts/index_margin_study.py: each scored region's true offset (the most common one of its
+    pixels), its purity and stripe margin, and the table of what each stripe margin would index."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "index_margin_study.py"
+    spec_ = importlib.util.spec_from_file_location("index_margin_study", path)
+    mod = importlib.util.module_from_spec(spec_)
+    spec_.loader.exec_module(mod)
+    spec = PatternSpec()
+    rows = 30
+    lab = stripe_image(spec, 54, 20, rows=rows)
+    rel = np.repeat(np.arange(20), 3)[None].repeat(rows, 0).astype(np.int32)
+    reg = np.zeros(lab.shape, np.int32)
+    for s in (0, 16, 19):
+        reg[5:, 3 * s:3 * s + 3] = -1
+    reg[:, 57:] = 1                       # a second region: the last stripes, 20 px wide columns
+    idx = uw.index_regions(lab, rel, reg, 2, spec, uw.UnwrapParams())
+    truth = (rel + 54) * 8.0 + 3.5        # true column: stripe (rel + 54), mid-stripe
+    truth[:10, 40:57] += 12 * 8           # a third of region 0's upper rows on another surface
+    recs = mod.region_records(lab, rel, reg, idx, truth, spec.stripe_px)
+    assert [r["true"] for r in recs] == [54, 54] and recs[0]["best"] == idx.offset[0]
+    assert recs[0]["why"] == idx.why[0] and recs[0]["stripes"] == idx.stripe_margin[0]
+    m0 = (reg == 0)
+    assert recs[0]["px"] == m0.sum() and recs[0]["purity"] == pytest.approx(1 - (m0[:10, 40:57]).sum() / m0.sum())
+    mod.report(recs + [dict(recs[0], why="ambiguous offset", stripes=2, purity=1.0, best=60, true=54)])
+    out = capsys.readouterr().out
+    one_surface = out.split("ambiguous, one surface: 1 scorings")[1].split("ambiguous, two surfaces")[0]
+    table = {ln.split()[1]: [ln.split()[2], ln.split()[5]] for ln in one_surface.splitlines()
+             if ln.strip().startswith(">=")}   # scorings indexed, of them wrong
+    assert table["2"] == ["1", "1"] and table["3"] == ["0", "0"]   # margin 2 would index it, wrongly
+    assert mod.main(["--set", "bogus"]) == 2
