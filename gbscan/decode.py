@@ -10,7 +10,9 @@ Pipeline (each step a named function; the paper's steps 1-4, then beyond the pap
    near their local maxima; "none" for dark (shadow), saturated and low-contrast pixels.
 4. :func:`gbscan.unwrap.unwrap` -- the paper's seven unwrapping steps (relative stripe index per
    connected region).
-5. :func:`gbscan.unwrap.index_regions` -- absolute index per region from the cyan markers; regions
+5. :func:`gbscan.unwrap.index_regions` -- absolute index per region from the cyan markers (after
+   the weld repairs, the regions left ambiguous by the pixel margin whose other offsets all
+   contradict enough more stripes: :func:`gbscan.unwrap.index_by_stripes`); regions
    and small components the markers cannot index alone are indexed through the reported pixels
    around them where the projector column continues unambiguously
    (:func:`gbscan.unwrap.link_components`), else dropped and counted.  Rows whose own markers

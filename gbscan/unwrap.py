@@ -43,9 +43,11 @@ The seven steps (paper wording -> function):
    upper or lower neighbour has the same colour and region but another index is flagged.
 
 No step optimises globally; each decision uses only a pixel's own row and its neighbour rows.
-Absolute indexing (beyond the paper) is :func:`index_regions`; :func:`marker_conflicts` then finds
-stretches of rows whose own markers contradict their region's offset (a surface welded in across a
-horizontal depth edge where the stripes happen to line up), which the decoder drops as unindexed.
+Absolute indexing (beyond the paper) is :func:`index_regions` (and :func:`index_by_stripes`, its
+margin counted in stripes, which the decoder applies after its weld repairs);
+:func:`marker_conflicts` then finds stretches of rows whose own markers contradict their
+region's offset (a surface welded in across a horizontal depth edge where the stripes happen to
+line up), which the decoder drops as unindexed.
 Components the markers cannot index alone (too small, too few markers) are indexed through the
 reported pixels around them by :func:`link_components` when the projector column continues into
 them for exactly one offset (many agreeing votes, none elsewhere, markers consistent); the decoder
