@@ -12,7 +12,10 @@ pixel with the simulator's truth (``r.proj_xy``):
 * ``col_rms``, ``>1px``: the sub-pixel accuracy, column error RMS (projector px) of the reported
   non-edge pixels on their right stripe, and how many of them are more than 1 px off;
 * the wrong pixels grouped by region: size, offset error (stripes), how the region was indexed
-  (markers / linked) and its index statistics (markers seen, evidence, mismatch, runner-up).
+  (markers / linked) and its index statistics (markers seen, evidence, mismatch, runner-up);
+* after the total, the unindexed share of the lit non-edge pixels by why (too few markers,
+  ambiguous offset, ...; "ok": rows of an indexed region its row checks dropped) and the scene
+  that loses most to each: where coverage goes that the markers could still win.
 
     python scripts/sweep_decode.py [--cache DIR] [--only SUBSTR] [--quick] [--decode NAME=VALUE]
     python scripts/sweep_decode.py --cache DIR --blur-grid 1,1.25,1.5,1.75,2,2.25,2.5,2.75,3
@@ -313,6 +316,33 @@ def wrong_regions(sm, truth, depth_edge, stripe_px: int) -> tuple[dict, list[dic
     return counts, rows
 
 
+def unindexed_by_why(sm, cand) -> dict:
+    """{why: pixels} of the pixels of ``cand`` (lit, off depth edges) that ``sm`` (decoded with
+    keep_stages) left unindexed, by their region's ``RegionIndex.why`` ("too few markers (k < n)"
+    counted as one; "no region": rows the row checks dropped outside any region)."""
+    from gbscan.decode import UNINDEXED
+
+    un = cand & (sm.mask == UNINDEXED)
+    if not un.any():
+        return {}
+    why = sm.stages["index"].why if sm.stages else []
+    out: dict = {}
+    for g, n in zip(*np.unique(sm.region[un], return_counts=True)):
+        w = why[g] if 0 <= g < len(why) else "no region"
+        w = "too few markers" if w.startswith("too few markers") else w
+        out[w] = out.get(w, 0) + int(n)
+    return out
+
+
+def unindexed_line(tot: dict) -> str:
+    """One line: the unindexed share of the lit non-edge pixels by why, the scene that loses most."""
+    parts = []
+    for why, per in sorted(tot["unindexed"].items(), key=lambda kv: -sum(kv[1].values())):
+        top = max(per, key=per.get)
+        parts.append(f"{why} {100.0 * sum(per.values()) / max(tot['lit'], 1):.2f} % (most: {top})")
+    return "unindexed, by why: " + ("; ".join(parts) if parts else "none")
+
+
 def working_volume(depth_range):
     """The decoder's stripe prior for the paper rig's true calibration and a depth range (mm), as
     ``gbscan scan --depth-range`` gives it (:attr:`gbscan.scan.Scanner.stripe_range`); None: none."""
@@ -340,7 +370,7 @@ def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = 
     spec = PatternSpec()
     out = print if show else (lambda *a, **k: None)
     tot = {"lit": 0, "reported": 0, "wrong": 0, "wrong_edge": 0, "bad_scenes": 0, "scenes": len(scenes),
-           "sq_err": 0.0, "n_err": 0, "over_1px": 0}
+           "sq_err": 0.0, "n_err": 0, "over_1px": 0, "unindexed": {}}
     out(f"{'scene':26s} {'preset':16s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'col_rms':>7s} "
         f"{'>1px':>5s} {'ms':>6s}")
     for k, (name, preset, seed, ss, factory) in enumerate(scenes):
@@ -367,6 +397,9 @@ def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = 
         tot["wrong"] += counts["wrong"]
         tot["wrong_edge"] += counts["wrong_edge"]
         tot["bad_scenes"] += int(counts["wrong"] + counts["wrong_edge"] > 0)
+        for why, n in unindexed_by_why(sm, cand).items():
+            per = tot["unindexed"].setdefault(why, {})
+            per[name] = per.get(name, 0) + n
         out(f"{name:26s} {preset:16s} {100.0 * rep / max(cand.sum(), 1):9.2f} {counts['wrong']:6d} "
             f"{counts['wrong_edge']:10d} {col_rms:7.3f} {int((np.abs(e) > 1.0).sum()):5d} {(t2 - t1) * 1e3:6.0f}",
             flush=True)
@@ -454,6 +487,7 @@ def main(argv=None) -> int:
     print(f"{'TOTAL':26s} {'':16s} {100.0 * tot['reported'] / max(tot['lit'], 1):9.2f} {tot['wrong']:6d} "
           f"{tot['wrong_edge']:10d} {rms:7.3f} {tot['over_1px']:5d}   scenes with wrong pixels: "
           f"{tot['bad_scenes']}/{tot['scenes']}")
+    print(unindexed_line(tot))
     return 0
 
 

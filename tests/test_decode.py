@@ -3095,11 +3095,45 @@ def test_sweep_script_frame_sets(tmp_path, capsys):
     line = next(x for x in out.splitlines() if x.startswith("head_warm0.4_s1"))
     assert line.split()[1] == "typical@warm0.4" and float(line.split()[2]) > 50.0   # reported %
     assert int(line.split()[3]) == 0 and "TOTAL" in out                               # none wrong
+    assert any(x.startswith("unindexed, by why: ") for x in out.splitlines())
     assert (tmp_path / "head_warm0.4_s1_typical_warm0.4_ss3.npz").is_file()
     # a second run decodes the cached frame: the same figures (but the time)
     assert mod.main(argv) == 0
     again = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("head_warm0.4_s1"))
     assert again.rsplit(None, 1)[0] == line.rsplit(None, 1)[0]
+
+
+def test_sweep_script_counts_unindexed_pixels_by_why():
+    """scripts/sweep_decode.py's last line: the unindexed lit non-edge pixels by their region's why
+    (the "too few markers (k < n)" whys as one), with the scene that loses most to each."""
+    import importlib.util
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from gbscan.decode import UNINDEXED
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "sweep_decode.py"
+    spec = importlib.util.spec_from_file_location("sweep_decode", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    mask = np.zeros((4, 6), np.uint8)
+    mask[0, :3] = UNINDEXED              # region 0: too few markers
+    mask[1, :2] = UNINDEXED              # region 1: too few markers, another count
+    mask[2, :4] = UNINDEXED              # region 2: ambiguous
+    mask[3, 0] = UNINDEXED               # no region
+    region = np.array([[0] * 6, [1] * 6, [2] * 6, [-1] * 6], np.int32)
+    idx = SimpleNamespace(why=["too few markers (1 < 2)", "too few markers (0 < 2)", "ambiguous offset"])
+    sm = SimpleNamespace(mask=mask, region=region, stages={"index": idx})
+    cand = np.ones((4, 6), bool)
+    cand[2, 3] = False                   # a depth-edge pixel: not counted
+    got = mod.unindexed_by_why(sm, cand)
+    assert got == {"too few markers": 5, "ambiguous offset": 3, "no region": 1}
+    tot = {"lit": 100, "unindexed": {w: {"a": n} for w, n in got.items()}}
+    tot["unindexed"]["ambiguous offset"]["b"] = 7
+    line = mod.unindexed_line(tot)
+    assert line == ("unindexed, by why: ambiguous offset 10.00 % (most: b); too few markers 5.00 % (most: a); "
+                    "no region 1.00 % (most: a)")
+    assert mod.unindexed_line({"lit": 0, "unindexed": {}}) == "unindexed, by why: none"
 
 
 def _finish_pixels_reference(reason, labels, region, relative, column_rel, inconsistent, reg_shift, reg_indexed,
