@@ -150,11 +150,10 @@ class UnwrapParams:
         2 is also the smallest margin no single misread stripe can turn into a wrong index: one
         misread moves the best's count and a runner-up's by one each, to a tie at worst.  The
         decoder applies it last (:func:`index_by_stripes`, after the weld repairs: retry, split,
-        peel), so the repairs see what they saw before:
-        applied inside the indexing it spared the retry of a frame whose re-unwrapping had kept a
-        panel unlinked, and the panel linked 8 stripes off (the multi-object scene at a 140-mm
-        baseline), and it let a split cut a region whose part was then indexed 12 stripes off
-        (175 mm).  ``scripts/sweep_decode.py``, no pixel on a wrong stripe added in any set:
+        peel), so the repairs see what they saw before: applied inside the indexing it spared
+        the retry of a frame whose re-unwrapping had kept a panel unlinked, and the panel linked
+        8 stripes off (the multi-object scene at a 140-mm baseline), and it let a split cut a
+        region whose part was then indexed 12 stripes off (175 mm).  ``scripts/sweep_decode.py``, no pixel on a wrong stripe added in any set:
         reported 83.76 -> 85.12 % (main), 91.83 -> 92.66 (room light), 89.91 -> 90.72 (clean),
         85.30 -> 87.07 (baselines), 88.74 -> 91.76 (mirrored), 87.95 -> 89.13 (panels),
         83.31 -> 84.12 % (layouts).  Their ``why`` is :data:`STRIPE_OK`.
@@ -1030,7 +1029,8 @@ class RegionIndex:
     mismatch, runner_up : mismatching votes of the best and the second-best offset.
     why : str per region ("ok", "no markers in pattern", "too few markers", "ambiguous", ...).
     stripe_margin : how many more stripes every other candidate offset contradicts than the best
-        (:func:`gbscan.kernels.score_offsets`; None where not scored so).
+        (:func:`gbscan.kernels.score_offsets`; :func:`index_regions` always fills it, 0 for the
+        regions it could not score; None in an index built otherwise).
     """
 
     offset: np.ndarray

@@ -67,7 +67,8 @@ def study(sets: list[str], cache: Path | None, quick: bool) -> list[dict]:
     from gbscan.pattern import PatternSpec
 
     spec = PatternSpec()
-    params = DecodeParams(unwrap=uw.UnwrapParams(index_margin_stripes=0))
+    # the stripe margin off; the whole frame (crop off): the maps index_regions sees are the frame's
+    params = DecodeParams(crop=False, unwrap=uw.UnwrapParams(index_margin_stripes=0))
     recs: list[dict] = []
     current = {}
     scorer = uw.index_regions
@@ -75,7 +76,7 @@ def study(sets: list[str], cache: Path | None, quick: bool) -> list[dict]:
     def recording(labels, relative, region, n_regions, pattern, p=uw.UnwrapParams(), stripe_range=None):
         idx = scorer(labels, relative, region, n_regions, pattern, p, stripe_range)
         t = current["truth"]
-        if t.shape == region.shape:   # (a decoded window: the truth cut to it, see below)
+        if t.shape == region.shape:   # (a frame decoded shrunk scores a smaller grid: not recorded)
             recs.extend(region_records(labels, relative, region, idx, t, pattern.stripe_px))
         return idx
 
@@ -86,8 +87,7 @@ def study(sets: list[str], cache: Path | None, quick: bool) -> list[dict]:
             for i, (name, preset, seed, ss, factory) in enumerate(scenes):
                 img, truth, _, _ = sd.load_or_render(name, preset, seed, ss, factory, cache)
                 current["truth"] = truth
-                # the whole frame (DecodeParams.crop off): the maps index_regions sees are the frame's
-                decode(img, spec, DecodeParams(unwrap=params.unwrap, crop=False))
+                decode(img, spec, params)
                 print(f"[{which} {i + 1}/{len(scenes)}] {name}: {len(recs)} scorings so far", file=sys.stderr,
                       flush=True)
     finally:
