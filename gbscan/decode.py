@@ -2106,17 +2106,27 @@ def _split_welds(cls, un, idx, pattern, params, stripe_range, locate, segments1=
     if p.split_rows <= 0 or not pattern.markers or not len(idx.why):
         return None
     sever = None
+    undecided = []
     for k in np.flatnonzero(uw.failed_regions(idx, un.region_px, p.retry_min_px)):
-        v = uw.split_row(cls.labels, un.relative, un.region, int(k), pattern, p)
-        if v is None:
+        got = uw.split_row(cls.labels, un.relative, un.region, int(k), pattern, p, span=True)
+        if got is None:
             continue
+        v, last = got
         if sever is None:
             sever = np.zeros(un.region.shape, bool)
         sever[v + 1] |= un.region[v + 1] == k
+        if last > v and p.split_undecided:
+            undecided.append((v + 1, last + 1, un.region[v + 1:last + 1] == k))
     if sever is None:
         return None
-    return _unwrap_again(cls, un, idx, pattern, params, stripe_range, locate, segments1, retry_px=retry_px,
-                         sever_px=sever)
+    again = _unwrap_again(cls, un, idx, pattern, params, stripe_range, locate, segments1, retry_px=retry_px,
+                          sever_px=sever)
+    if again is not None and undecided:
+        # the rows between the cuts that tie: their surface undecided, reported unindexed
+        for a, b, m in undecided:
+            r = cls.reason[a:b]
+            r[m & (r == OK)] = UNINDEXED
+    return again
 
 
 #: frames a :class:`StreamMemo` reuses a measurement on before measuring it again

@@ -321,6 +321,23 @@ class UnwrapParams:
         -0.7 points); the blur grid at 1 / 2 / 3 px 82.60 / 81.96 / 80.31 -> 82.59 / 81.97 /
         80.31 %, 0 wrong.  It also refuses the panel the near slope test was made for (moving frame
         5 at 3 px of blur with ``boundary_fit_half`` 3: over 300 wrong pixels without either).
+    link_grad_z_one : the z-score the gradient test needs of a component tied through one contact
+        alone (every agreeing vote with the reported pixels on the same side: it hangs from the
+        rows above or stands on the rows below); 0 (the default): its gradient must be seen to
+        continue, a median change over ``link_grad_tol`` refuses it at any z-score.  A component
+        tied above and below has two contacts agreeing on its offset, and keeps ``link_grad_z``
+        and the exemption of a steady change.  The burden of proof lies with the one-contact
+        link: nothing else confirms its offset (no markers of its own), and the lined-up weld
+        it may be shows exactly such a change.  The multi-object scene at 740 mm before a wall
+        at 1 138 mm (``scripts/sweep_decode.py --set layouts``): a panel fragment hanging from a
+        strip of the wall, 12 stripes off, its change -0.21 px per row at z 6.3 and 8.2 on two
+        renders (68 and 48 wrong pixels); components tied through one contact and linked
+        rightly measured changes over 0.1 px per row at z 1.3-9.7, those tied above and below
+        (the real face's, the heads' under room light) 0.11-0.42 at z 2.5-28 (twenty-ninth
+        session, every sweep set).  From 10 (``link_grad_z``,
+        the rule before) to 0: layouts 134 -> 18 wrong off depth edges, 84.12 -> 84.09 %
+        reported; the 48 scenes 85.12 -> 85.12 %, clean 90.72 -> 90.69, baselines 87.07 -> 87.06,
+        room light, mirrored and panels unchanged; none wrong added anywhere.
     tilt_step, tilt_z, tilt_rows, tilt_window, tilt_break_rows, tilt_break_min, tilt_break_cuts :
         step 1 also cuts a row where it crosses the depth-edge line of the rows around it and the
         stripes' lean steps there (:func:`gbscan.kernels.tilt_step_cuts`).  Two surfaces whose
@@ -365,6 +382,15 @@ class UnwrapParams:
         2560x1920 (``scripts/resample_study.py``, the multi-object scene shrunk by 4): a region
         of 46 381 shrunk px whose rows 150-293 fit offset 24 and rows 294-425 offset 48 was
         dropped whole (47.1 % of the scene reported; 82.7 % split, none wrong off depth edges).
+    split_undecided : the rows a split cannot place are reported unindexed: when several cuts
+        tie at the fewest mismatching pixels (:func:`split_row` with ``span``: the rows between
+        them show no marker stripe of either part), the region is cut at the first and the rows
+        down to the last may belong to either surface.  The multi-object scene at 800 mm with
+        its wall at 1 231 mm, the panel plain (``scripts/sweep_decode.py --set layouts``): the
+        wall's rows just above the box tie from 5 rows above the true contact, and 3 rows of the
+        wall carried the box's offset, 12 stripes off (3 wrong pixels off the depth-edge line,
+        40 on it) -> none (twenty-ninth session; the frame 63.92 -> 63.91 % reported, every other
+        sweep frame unchanged).
     peel_max_frac : a region of at least ``retry_min_px`` pixels whose markers do not fit the
         pattern may be one surface with a strip of another welded in beside it, along a
         slanted silhouette that neither the row cuts nor :func:`split_row` separate.
@@ -437,6 +463,7 @@ class UnwrapParams:
     link_grad_z: float = 10.0
     link_grad_rows: int = 6
     link_grad_skip_rows: int = 3
+    link_grad_z_one: float = 0.0
     tilt_step: float = 0.03
     tilt_z: float = 6.0
     tilt_rows: int = 6
@@ -448,6 +475,7 @@ class UnwrapParams:
     retry_spacing_ratio: float = 1.2
     retry_min_px: int = 1000
     split_rows: int = 3
+    split_undecided: bool = True
     peel_max_frac: float = 0.25
     peel_min_markers: int = 4
     peel_margin: float = 2.0
@@ -475,6 +503,9 @@ class UnwrapParams:
                           f"{self.index_margin_stripes}")
         if int(self.link_hang_rows) < 0:
             raise GBError(f"UnwrapParams.link_hang_rows must be >= 0 (0 disables), got {self.link_hang_rows}")
+        if not float(self.link_grad_z_one) >= 0:
+            raise GBError(f"UnwrapParams.link_grad_z_one must be >= 0 (0: a one-contact component's gradient "
+                          f"change is judged by its size alone), got {self.link_grad_z_one}")
         if int(self.link_grad_skip_rows) < 0:
             raise GBError(f"UnwrapParams.link_grad_skip_rows must be >= 0 (0: from the contact row), got "
                           f"{self.link_grad_skip_rows}")
@@ -1392,7 +1423,7 @@ def _same_maps(where: str, **maps) -> None:
 
 
 def split_row(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, k: int, pattern: PatternSpec,
-              params: UnwrapParams = UnwrapParams()) -> int | None:
+              params: UnwrapParams = UnwrapParams(), span: bool = False):
     """The row at which region ``k``'s markers say it is two surfaces, one above the other.
 
     ``labels`` (H, W) uint8 colour classes, ``relative`` (H, W) int32 and ``region`` (H, W) int32
@@ -1402,7 +1433,9 @@ def split_row(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, k: i
     last row of the upper part for the ``v`` where both parts pass every test of the indexing
     (markers seen, mismatch, margin) at *different* offsets, with the fewest mismatching pixels
     in all (the first such row on a tie); None when there is none (one surface whose markers
-    simply do not fit, or a weld that no single row separates).
+    simply do not fit, or a weld that no single row separates).  ``span``: returns (first, last)
+    of the rows that tie at that fewest (first == last when one row stands out): the rows after
+    the first down to the last may belong to either part, their markers say nothing of it.
     """
     from . import kernels
     from .pattern import BLUE, CYAN, GREEN
@@ -1442,7 +1475,10 @@ def split_row(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, k: i
     if not both.any():
         return None
     total = np.where(both, mismatch[0::2] + mismatch[1::2], np.iinfo(np.int64).max)
-    return v0 + int(cut[int(np.argmin(total))])
+    best = np.flatnonzero(total == total.min())
+    if span:
+        return v0 + int(cut[best[0]]), v0 + int(cut[best[-1]])
+    return v0 + int(cut[best[0]])
 
 
 def spans_mask(spans: np.ndarray, shape) -> np.ndarray:
@@ -1676,7 +1712,8 @@ def _gradient_jumps(vc, vk, vl, vv, good, comp, col_rel, col_abs, comps, offsets
     ``link_grad_z`` standard errors (``1.4826 * MAD / sqrt(n)``, the MAD at least
     ``_GRAD_NOISE_FLOOR``), unless its contacts above and below, taken apart, have medians of
     opposite signs each at that z-score (the gradient changing steadily through it: one curved
-    surface, as found on the real face).
+    surface, as found on the real face).  A component tied through one contact alone (its
+    agreeing votes all on one side) is flagged at ``link_grad_z_one`` standard errors instead.
     """
     from . import kernels
 
@@ -1691,7 +1728,8 @@ def _gradient_jumps(vc, vk, vl, vv, good, comp, col_rel, col_abs, comps, offsets
         np.ascontiguousarray(good, dtype=np.bool_), np.ascontiguousarray(comp, dtype=np.int32),
         np.ascontiguousarray(col_rel, dtype=np.float32), np.ascontiguousarray(col_abs, dtype=np.float32), slot,
         np.asarray(offsets, dtype=np.int64), int(params.link_grad_rows), float(params.link_grad_tol),
-        float(params.link_grad_z), _GRAD_MIN_VOTES, _GRAD_NOISE_FLOOR, int(params.link_grad_skip_rows))
+        float(params.link_grad_z), _GRAD_MIN_VOTES, _GRAD_NOISE_FLOOR, int(params.link_grad_skip_rows),
+        float(params.link_grad_z_one))
 
 
 _SLOPE_MIN_VOTES = 5  # measurable votes a component needs before its slope can refuse it

@@ -2299,6 +2299,40 @@ def test_strip_rows_without_a_marker_go_with_the_rows_whose_markers_reject_it():
                      60, 0.005)
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("albedo", [None, 0.4])
+def test_fragment_hanging_from_one_contact_is_not_linked_on_a_gradient_change(albedo):
+    """Issue 3, the layouts set: the multi-object scene at 740 mm with its wall at 1 138 mm (seed
+    0; objects of the scene's albedo and of 0.4).  A fragment of the panel, its markers on a dark
+    patch, is unwrapped together with a strip of the wall at its bottom, 12 stripes off, and
+    linked through that strip's row alone; its stripes lean -0.21 px per row against the wall's
+    (z 6.3 / 8.2, under ``link_grad_z``).  ``UnwrapParams.link_grad_z_one`` (0): a component tied
+    through one contact must show its gradient continuing: the fragment stays unlinked (at albedo
+    0.4 a few of the wall strip's pixels are reported that were not, none wrong)."""
+    from gbscan.unwrap import UnwrapParams
+
+    r = sim.render(sim.paper_rig(), sim.scenes.multi_object(740.0, wall_mm=740.0 * 1000.0 / 650.0, albedo=albedo),
+                   render_pattern(PatternSpec()), "typical", seed=0)
+    _rule_fixes_weld(f"multi-object at 740 mm, wall 1138 mm, albedo {albedo}", r,
+                     DecodeParams(unwrap=UnwrapParams(link_grad_z_one=10.0)), 40, 0.005, only_masks=False)
+
+
+@pytest.mark.slow
+def test_rows_a_split_cannot_place_are_reported_unindexed():
+    """Issue 3, the layouts set: the multi-object scene at 800 mm with its wall at 1 231 mm, the
+    panel plain (seed 1).  The wall above a box is unwrapped together with it (their stripes line
+    up 12 apart) and the region is split at a contact row (``split_rows``); the wall's rows just
+    above the true contact hold no marker stripe, so every cut from 5 rows above it ties, and the
+    first was taken: 3 rows of the wall carried the box's offset (43 pixels, 3 off the depth-edge
+    line).  ``UnwrapParams.split_undecided`` reports the tied rows unindexed."""
+    from gbscan.unwrap import UnwrapParams
+
+    r = sim.render(sim.paper_rig(), sim.scenes.multi_object(800.0, wall_mm=800.0 * 1000.0 / 650.0, panel_albedo=0.6),
+                   render_pattern(PatternSpec()), "typical", seed=1)
+    _rule_fixes_weld("multi-object at 800 mm, wall 1231 mm, plain panel", r,
+                     DecodeParams(unwrap=UnwrapParams(split_undecided=False)), 3, 0.002)
+
+
 def test_sphere_with_a_welded_in_strip_is_indexed_without_it():
     """Issue 3, other baselines: the multi-object scene with the projector 175 mm from the camera
     (supersample 1).  Along the sphere's lower right rim its stripes meet the wall's, 22 stripes

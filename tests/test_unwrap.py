@@ -430,17 +430,21 @@ def hanging_patch(spec: PatternSpec, width: int, first: int = 10, px: int = 3):
     return np.ascontiguousarray(lab)
 
 
-def link_hanging(spec, lab, p, grad: float = 0.0, width: int = 0, px: int = 3, bend_rows: int = 0):
+def link_hanging(spec, lab, p, grad: float = 0.0, width: int = 0, px: int = 3, bend_rows: int = 0,
+                 noise_px: float = 0.0):
     """unwrap, index and link ``lab`` (columns exact from the relative index); the patch's
     columns (rows 24-33, ``width`` px) tilt by ``grad`` projector px per row along the stripes,
     continuing the rows below at the contact row 33 -- or, with ``bend_rows``, at row
     ``33 - bend_rows``, the rows below it keeping the columns of the surface below (as the
-    along-stripe blur mixes the rows next to a contact)."""
+    along-stripe blur mixes the rows next to a contact) -- and carry Gaussian noise of
+    ``noise_px`` projector px (seeded)."""
     u = uw.unwrap(lab, p)
     idx = uw.index_regions(lab, u.relative, u.region, u.region_px.size, spec, p)
     uu = np.arange(lab.shape[1])
     col_rel = (u.relative * spec.stripe_px + (((uu % px) + 0.5) * spec.stripe_px / px - 0.5)).astype(np.float32)
     col_rel[24:34, :width] += (grad * np.minimum(np.arange(24, 34) - 33.0 + bend_rows, 0.0)).astype(np.float32)[:, None]
+    if noise_px:
+        col_rel[24:34, :width] += np.random.default_rng(5).normal(0.0, noise_px, (10, width)).astype(np.float32)
     reg = np.where(u.region >= 0, u.region, idx.offset.size)
     ind, off = np.r_[idx.indexed, False][reg], np.r_[idx.offset, 0][reg]
     col_abs = np.where(ind, col_rel + off * spec.stripe_px, np.nan).astype(np.float32)
@@ -491,6 +495,27 @@ def test_gradient_test_skips_the_rows_the_blur_mixes_at_the_contact():
     # a patch leaning with the surface below is linked either way
     _, _, lk1 = link_hanging(spec, lab, p, 0.0, 15, bend_rows=3)
     assert lk1.stats["components_linked"] == 1
+
+
+def test_component_tied_through_one_contact_needs_its_gradient_seen_continuing():
+    """``link_grad_z_one`` (0): the hanging patch (tied to the rows below alone, one marker of its
+    own) leans 0.2 px per row against them, its columns noisy (0.5 projector px): the change is
+    over ``link_grad_tol`` but at a z-score under ``link_grad_z`` (10), as the layouts set's panel
+    fragment hanging 12 stripes off from a strip of the wall (-0.21 px per row at z 6.3 / 8.2).
+    Judged at ``link_grad_z`` it is linked; tied through one contact, it is refused.  Leaning with
+    the rows below, the same noise, it is linked either way."""
+
+    spec = PatternSpec()
+    lab = hanging_patch(spec, 15)
+    p = uw.UnwrapParams(min_region_px=150, min_marker_px=5)
+    assert p.link_grad_z_one == 0.0 and p.link_grad_z == 10.0
+    u, idx, lk = link_hanging(spec, lab, p, 0.2, 15, noise_px=0.5)
+    assert lk.stats["components_linked"] == 0 and lk.stats["refused_gradient"] == 1
+    _, _, lk10 = link_hanging(spec, lab, dataclasses.replace(p, link_grad_z_one=10.0), 0.2, 15, noise_px=0.5)
+    assert lk10.stats["components_linked"] == 1 and lk10.stats["refused_gradient"] == 0
+    for z_one in (0.0, 10.0):
+        _, _, lk0 = link_hanging(spec, lab, dataclasses.replace(p, link_grad_z_one=z_one), 0.0, 15, noise_px=0.5)
+        assert lk0.stats["components_linked"] == 1, z_one
 
 
 @pytest.mark.parametrize("skip", [0, 3])
@@ -549,7 +574,8 @@ def test_gradient_jump_verdicts_equal_the_median_test_over_the_measured_votes():
     between reported bands of random gradients, voted from below and sometimes from above; votes
     at another offset, not agreeing or along a row left out; too few measured votes never
     flagged; a component whose two contacts, apart, differ with opposite signs (the gradient
-    changing steadily through it: one curved surface) not flagged."""
+    changing steadily through it: one curved surface) not flagged; one tied through one contact
+    alone judged at ``z_one`` (``link_grad_z_one``; negative: at ``z``)."""
     from gbscan import kernels
 
     rng = np.random.default_rng(11)
@@ -567,7 +593,7 @@ def test_gradient_jump_verdicts_equal_the_median_test_over_the_measured_votes():
             comp[r0:r1, u0:u1 + 1] = c
             col_abs[r0:r1, u0:u1 + 1] = np.nan
             g = rng.choice([0.0, 0.05, 0.2, -0.3])
-            col_rel[r0:r1, u0:u1 + 1] = (rng.normal(0, rng.choice([0.005, 0.05]), (r1 - r0, u1 - u0 + 1))
+            col_rel[r0:r1, u0:u1 + 1] = (rng.normal(0, rng.choice([0.005, 0.05, 0.5]), (r1 - r0, u1 - u0 + 1))
                                          + g * np.arange(r0, r1)[:, None]).astype(np.float32)
             above = rng.random() < 0.6
             for u in range(u0, u1 + 1):
@@ -581,25 +607,38 @@ def test_gradient_jump_verdicts_equal_the_median_test_over_the_measured_votes():
         slot = np.full(4, -1, np.int64)
         slot[comps] = np.arange(3)
         skip = trial % 4              # the rows skipped past the contact (link_grad_skip_rows)
+        z_one = (-1.0, 0.0, 3.0)[trial % 3]     # link_grad_z_one (negative: z, the rule before it)
         got = kernels.gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot,
-                                             np.array([3, 3, 3], np.int64), rows, tol, z, 5, 0.005, skip)
+                                             np.array([3, 3, 3], np.int64), rows, tol, z, 5, 0.005, skip, z_one)
         diff, where = kernels.stripe_gradient_jumps(vc, vl, vv, comp, col_rel, col_abs, slot, rows, skip)
-        def test(d):
+        def test(d, z=z):
             med = np.median(d)
             zz = abs(med) / (1.4826 * max(np.median(np.abs(d - med)), 0.005) / np.sqrt(d.size))
             return abs(med) > tol and zz > z, med, zz
 
         for i, c in enumerate(comps):
-            mine = (vc == c) & (vk == 3) & good & (vl >= 0) & np.isfinite(diff)
+            agree = (vc == c) & (vk == 3) & good & (vl >= 0)
+            mine = agree & np.isfinite(diff)
+            # the side of the reported pixels of every agreeing vote, measured or not
+            contacts = {0 if v >= 2 and np.isfinite(col_abs[v - 1, u]) and np.isfinite(col_abs[v - 2, u]) else 1
+                        for u, v in zip(vl[agree], vv[agree])}
             sides = [test(diff[mine & (where == w)]) for w in (0, 1) if (mine & (where == w)).sum() >= 5]
-            steady = len(sides) == 2 and all(t[2] > z for t in sides) and sides[0][1] * sides[1][1] < 0
-            jump = mine.sum() >= 5 and test(diff[mine])[0]
-            want = jump and not steady
-            assert got[i] == want, (trial, c, jump, sides)
-            verdicts.append((bool(want), len(sides), bool(jump and steady)))
+            if z_one >= 0 and len(contacts) == 1:
+                # tied through one contact: judged at z_one, no exemption
+                want = mine.sum() >= 5 and test(diff[mine], z_one)[0]
+                verdicts.append((bool(want), "one contact", z_one, bool(test(diff[mine])[0]) if mine.sum() >= 5
+                                 else None))
+            else:
+                steady = len(sides) == 2 and all(t[2] > z for t in sides) and sides[0][1] * sides[1][1] < 0
+                jump = mine.sum() >= 5 and test(diff[mine])[0]
+                want = jump and not steady
+                verdicts.append((bool(want), len(sides), bool(jump and steady)))
+            assert got[i] == want, (trial, c, sides, contacts, z_one)
     kinds = set(verdicts)
     assert {(True, 1, False), (False, 1, False), (False, 0, False)} <= kinds            # one contact
     assert (True, 2, False) in kinds and (False, 2, True) in kinds      # two: a jump; a steady change spared
+    # link_grad_z_one: a one-contact component flagged under z_one that z alone would have linked
+    assert (True, "one contact", 0.0, False) in kinds and (True, "one contact", 3.0, False) in kinds
 
 
 def test_component_markers_seen_kernel_counts_marker_stripes_with_enough_pixels():
@@ -635,7 +674,8 @@ def test_link_params_are_validated():
         uw.UnwrapParams(link_tol_px=5.0)
     with pytest.raises(GBError, match="link_votes"):
         uw.UnwrapParams(link_votes=-1)
-    for bad in ({"link_grad_tol": -0.1}, {"link_grad_z": -1.0}, {"link_grad_rows": 1}, {"link_grad_skip_rows": -1}):
+    for bad in ({"link_grad_tol": -0.1}, {"link_grad_z": -1.0}, {"link_grad_rows": 1}, {"link_grad_skip_rows": -1},
+                {"link_grad_z_one": -1.0}, {"link_grad_z_one": float("nan")}):
         with pytest.raises(GBError, match="link_grad"):
             uw.UnwrapParams(**bad)
 
@@ -1647,6 +1687,29 @@ def test_split_row_finds_a_lined_up_contact(rows_top, rows_bottom):
         reg = np.where(np.broadcast_to(part[:, None], lab.shape), 0, -1).astype(np.int32)
         ip = uw.index_regions(lab, rel, reg, 1, spec)
         assert ip.indexed[0] and ip.offset[0] == (10 if part[0] else 34)
+
+
+def test_split_row_span_holds_the_rows_whose_markers_say_nothing():
+    """``split_row(span=True)``: the cuts that tie at the fewest mismatching pixels.  At a clean
+    contact one row stands out; where the rows next to it show no marker stripe of either surface
+    (their marker stripes dark, under either offset) every cut among them fits as well, and the
+    span runs from the last row of markers above to the last blank row below: the rows between
+    may belong to either part (the decoder reports them unindexed, ``split_undecided``)."""
+    spec = PatternSpec()
+    lab = contact_image(spec, 20, 20)
+    rel, region = welded_maps(lab)
+    assert uw.split_row(lab, rel, region, 0, spec, span=True) == (19, 19)
+    is_marker = spec.is_marker()
+    s = rel[0].astype(np.int64)          # relative stripe per column; the top is 10 on, the bottom 34 on
+    either = is_marker[np.minimum(s + 10, is_marker.size - 1)] | is_marker[np.minimum(s + 34, is_marker.size - 1)]
+    blank = lab.copy()
+    blank[16:24, either] = NONE
+    assert uw.split_row(blank, rel, region, 0, spec) == 15                      # the first of the tie, as before
+    assert uw.split_row(blank, rel, region, 0, spec, span=True) == (15, 23)
+    # a blank band above the contact only: the tie ends at the contact
+    above = lab.copy()
+    above[16:20, either] = NONE
+    assert uw.split_row(above, rel, region, 0, spec, span=True) == (15, 19)
 
 
 def test_unwrap_sever_px_cuts_the_links_to_the_row_above():

@@ -1469,7 +1469,7 @@ def _median_test(d, tol, z, floor):
 
 @njit(cache=True, nogil=True)
 def gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot, offset, rows, tol, z, min_votes,
-                           floor, skip=0):
+                           floor, skip=0, z_one=-1.0):
     """Per slot: does the column's gradient along the stripes jump where the component meets the
     reported pixels?  The agreeing (``good``) vertical votes of each component ``c`` with
     ``slot[c] >= 0`` at its offset ``offset[slot[c]]`` (``vk``, periods of two stripes) are
@@ -1479,12 +1479,16 @@ def gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot, o
     below (each with ``min_votes`` measured) have medians of opposite signs, each at a z-score
     over ``z``: then the gradient grows (or falls) steadily from the surface above through the
     component to the one below, the curvature of one surface, where a surface of another tilt
-    would differ from both the same way.  Returns (n_slot,) bool."""
+    would differ from both the same way.  A component whose agreeing votes (measured or not) all
+    have the reported pixels on one side -- tied through one contact alone -- is judged at the
+    z-score ``z_one`` instead (0: by the median's size alone; negative: at ``z``, the rule before
+    the twenty-ninth session), with no exemption.  Returns (n_slot,) bool."""
     n_slot = offset.shape[0]
     n = vc.shape[0]
     diff = np.full(n, np.nan)
     key = np.full(n, -1, np.int64)
     cnt = np.zeros(2 * n_slot + 1, np.int64)
+    sides = np.zeros(n_slot, np.int64)     # bit w: an agreeing vote with the reported pixels on side w
     acc = np.zeros(5)
     for i in range(n):
         c = vc[i]
@@ -1494,6 +1498,7 @@ def gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot, o
         if k < 0 or vk[i] != offset[k]:
             continue
         g, w = _gradient_step(comp, col_rel, col_abs, c, vl[i], vv[i], rows, skip, acc)
+        sides[k] |= 1 << w
         if not np.isnan(g):
             diff[i] = g
             key[i] = 2 * k + w
@@ -1510,6 +1515,11 @@ def gradient_jump_verdicts(vc, vk, vl, vv, good, comp, col_rel, col_abs, slot, o
     for k in range(n_slot):
         a, b = cnt[2 * k], cnt[2 * k + 2]       # both contacts' votes (the buckets are adjacent)
         if b - a < min_votes:
+            continue
+        if z_one >= 0.0 and sides[k] != 3:
+            # tied through one contact alone: the gradient must be seen to continue
+            jump, _, _ = _median_test(vals[a:b], tol, z_one, floor)
+            out[k] = jump
             continue
         jump, _, _ = _median_test(vals[a:b], tol, z, floor)
         if not jump:
