@@ -1512,6 +1512,45 @@ def test_interpolate_columns_does_not_extrapolate_across_a_depth_edge_contact(sp
         np.testing.assert_array_equal(col, ref)
 
 
+@pytest.mark.parametrize("shift_b, cut", [
+    ((8 - 100) * 8.0, False),          # B continues A's columns: one surface (two regions of it)
+    ((8 + 12 - 100) * 8.0, True),      # 12 stripes further: another surface whose colours line up
+    ((8 - 2 - 100) * 8.0, True),       # 2 stripes back
+    (np.nan, False),                   # B's region not indexed: nothing to compare
+    (None, False)])                    # the rule off (no shifts)
+def test_interpolate_columns_does_not_extrapolate_where_the_columns_jump_at_a_contact(shift_b, cut):
+    """DecodeParams.contact_regions: two touching segments of a row with the same boundary spacing
+    (no spacing jump) but in regions whose offsets put B's first boundary more than a stripe from
+    A's columns continued to it: two surfaces at a depth edge whose stripes line up (the layouts
+    set at 620 mm: a near object's last run, the wall's stripe of its colour 12 stripes on, read
+    as the object's next stripe).  Neither end is extrapolated there; where B's columns continue
+    A's, or a shift is unknown, both are, as before."""
+    from gbscan import kernels
+
+    W, seg, j_x, j_bnd = _two_segments(4.2, 1)
+    ones = np.ones(2, np.uint8)
+    ref = kernels.interpolate_columns(1, W, *seg, ones, j_x, j_bnd, 8.0, 0.75, 1.35)[0]
+    if shift_b is None:
+        col = kernels.interpolate_columns(1, W, *seg, ones, j_x, j_bnd, 8.0, 0.75, 1.35, 0, 1, 0, np.zeros(0))[0]
+    else:
+        col = kernels.interpolate_columns(1, W, *seg, ones, j_x, j_bnd, 8.0, 0.75, 1.35, 0, 1, 0,
+                                          np.array([0.0, shift_b]))[0]
+    a_end = np.arange(27, 30)
+    b_start = np.arange(seg[1][1], int(np.ceil(j_x[7])))
+    assert np.all(np.isfinite(ref[a_end])) and np.all(np.isfinite(ref[b_start]))
+    inner = np.isfinite(ref)
+    inner[a_end] = inner[b_start] = False
+    np.testing.assert_array_equal(col[inner], ref[inner])
+    if cut:
+        assert np.all(np.isnan(col[a_end])) and np.all(np.isnan(col[b_start]))
+    else:
+        np.testing.assert_array_equal(col, ref)
+    # the same shifts without the contact rule (contact_ratio 0): always extrapolated
+    if shift_b is not None:
+        off = kernels.interpolate_columns(1, W, *seg, ones, j_x, j_bnd, 8.0, 0.75, 0.0, 0, 1, 0, np.array([0.0, shift_b]))
+        np.testing.assert_array_equal(off[0], kernels.interpolate_columns(1, W, *seg, ones, j_x, j_bnd, 8.0, 0.75)[0])
+
+
 def _quadratic_row(q: float, n: int = 9, x0: float = 10.5):
     """One row, one segment whose boundary k (column 8 k - 0.5) sits where the column
     c(x) = 8 (x - x0) / 4 + q (x - x0)^2 - 0.5 reaches it: stripes that narrow (q > 0) or widen

@@ -1017,7 +1017,8 @@ def _span(dst, q, m, c0, x0, slope):
 
 @njit(cache=True, nogil=True)
 def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j_x, j_bnd, stripe_px,
-                        extrapolate, contact_ratio=0.0, end_fit=0, contact_gap_px=1, ox=0):
+                        extrapolate, contact_ratio=0.0, end_fit=0, contact_gap_px=1, ox=0,
+                        seg_shift=np.zeros(0)):
     """Continuous projector column of every pixel of the accepted segments.  ``ox``: the frame's
     column where the (H, W) arrays start (a decoded window); ``j_x`` are the frame's positions
     (:func:`subpixel_junctions` with the same ``ox``) and a pixel's position is ``u + ox``.
@@ -1109,10 +1110,12 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
         p_end = u_end + ox
         if contact_ratio > 0:
             if s > 0 and seg_row[s - 1] == v and seg_u1[s - 1] >= u - 1 - contact_gap_px and \
-                    _spacing_jump(sp_last[s - 1], sp_first[s], contact_ratio):
+                    (_spacing_jump(sp_last[s - 1], sp_first[s], contact_ratio) or
+                     _column_jump(seg_shift, XS, CS, off, cnt, s - 1, s, stripe_px)):
                 p = max(p, np.int64(np.ceil(xs[0])))
             if s + 1 < ns and seg_row[s + 1] == v and seg_u0[s + 1] <= u_end + 1 + contact_gap_px and \
-                    _spacing_jump(sp_last[s], sp_first[s + 1], contact_ratio):
+                    (_spacing_jump(sp_last[s], sp_first[s + 1], contact_ratio) or
+                     _column_jump(seg_shift, XS, CS, off, cnt, s, s + 1, stripe_px)):
                 p_end = min(p_end, np.int64(np.floor(xs[n - 1])))
         if p > p_end:
             continue
@@ -1157,6 +1160,27 @@ def interpolate_columns(H, W, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, seg_ok, j
                 crow[p - ox] = _end_value(fr_ok, fr_a, fr_b, fr_q, p - x1, c0 + (p - x0) * slope, slope)
             p += 1
     return col
+
+
+@njit(cache=True, nogil=True)
+def _column_jump(seg_shift, XS, CS, off, cnt, a, b, stripe_px):
+    # segment a (left) and b (right) of one row, both with an absolute shift (seg_shift finite;
+    # empty: never) and two located boundaries: b's first boundary's absolute column is more than
+    # a stripe from a's last interval continued to it (two surfaces whose colours line up)
+    if seg_shift.shape[0] == 0 or cnt[a] < 2 or cnt[b] < 2:
+        return False
+    sa = seg_shift[a]
+    sb = seg_shift[b]
+    if np.isnan(sa) or np.isnan(sb):
+        return False
+    i = off[a] + cnt[a] - 1
+    x0 = XS[i - 1]
+    x1 = XS[i]
+    c0 = CS[i - 1]
+    c1 = CS[i]
+    xb = XS[off[b]]
+    pred = c1 + sa + (xb - x1) * (c1 - c0) / (x1 - x0)
+    return abs(CS[off[b]] + sb - pred) > stripe_px
 
 
 @njit(cache=True, nogil=True)
