@@ -334,10 +334,10 @@ class UnwrapParams:
         renders (68 and 48 wrong pixels); components tied through one contact and linked
         rightly measured changes over 0.1 px per row at z 1.3-9.7, those tied above and below
         (the real face's, the heads' under room light) 0.11-0.42 at z 2.5-28 (twenty-ninth
-        session, every sweep set).  From 10 (``link_grad_z``,
-        the rule before) to 0: layouts 134 -> 18 wrong off depth edges, 84.12 -> 84.09 %
-        reported; the 48 scenes 85.12 -> 85.12 %, clean 90.72 -> 90.69, baselines 87.07 -> 87.06,
-        room light, mirrored and panels unchanged; none wrong added anywhere.
+        session, every sweep set).  From 10 (``link_grad_z``, the rule before) to 0: layouts
+        134 -> 18 wrong off depth edges, 84.12 -> 84.09 % reported; the 48 scenes 85.12 -> 85.12
+        %, clean 90.72 -> 90.69, baselines 87.07 -> 87.06, room light, mirrored and panels
+        unchanged; the real face's scan on seed 1 80.2 -> 80.0 % kept; none wrong added anywhere.
     tilt_step, tilt_z, tilt_rows, tilt_window, tilt_break_rows, tilt_break_min, tilt_break_cuts :
         step 1 also cuts a row where it crosses the depth-edge line of the rows around it and the
         stripes' lean steps there (:func:`gbscan.kernels.tilt_step_cuts`).  Two surfaces whose
