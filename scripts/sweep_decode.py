@@ -17,6 +17,11 @@ pixel with the simulator's truth (``r.proj_xy``):
   ambiguous offset, ...; "ok": rows of an indexed region its row checks dropped) and the scene
   that loses most to each: where coverage goes that the markers could still win.
 
+``--out DIR`` writes ``wrong_<scene>.png`` for each scene with a pixel on a wrong stripe: the
+frame, its reported pixels grey, the wrong ones red off depth edges and orange on them, the lit
+pixels left unreported dark blue, and a close-up of the largest cluster of wrong pixels (off
+depth edges when there are any).
+
     python scripts/sweep_decode.py [--cache DIR] [--only SUBSTR] [--quick] [--decode NAME=VALUE]
     python scripts/sweep_decode.py --cache DIR --blur-grid 1,1.25,1.5,1.75,2,2.25,2.5,2.75,3
     python scripts/sweep_decode.py --cache DIR --depth-range 400 1200   # with a working volume
@@ -31,6 +36,7 @@ pixel with the simulator's truth (``r.proj_xy``):
     python scripts/sweep_decode.py --cache DIR --set mirrored     # the projector on the camera's left (21 frames)
     python scripts/sweep_decode.py --cache DIR --set panels       # the multi-object scene's panel plain (45 frames)
     python scripts/sweep_decode.py --cache DIR --set layouts      # other depths, walls, albedos (32 frames)
+    python scripts/sweep_decode.py --cache DIR --set layouts --out DIR   # and pictures of the wrong pixels
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
 wrong non-edge pixels under it (all wrong regions with ``--edges``), and a total.  Progress lines go to stderr.  Renders are cached in ``--cache`` (npz).
@@ -316,6 +322,62 @@ def wrong_regions(sm, truth, depth_edge, stripe_px: int) -> tuple[dict, list[dic
     return counts, rows
 
 
+#: ``wrong_picture``'s colours (RGB): reported on the right stripe, on a wrong one off / on depth
+#: edges, lit and not reported
+WRONG_RGB = {"right": (150, 150, 150), "wrong": (255, 40, 40), "wrong_edge": (255, 165, 0),
+             "unreported": (40, 60, 150)}
+
+
+def wrong_picture(path: Path, name: str, image, valid, bad, depth_edge, lit, zoom_px: int = 24) -> Path:
+    """PNG of one scene's wrong pixels (``bad``: reported on a wrong stripe, :func:`gbscan.sim.
+    column_errors`): the frame at a quarter of its brightness, the reported pixels grey, the
+    wrong ones red off depth edges and orange on them, the lit pixels not reported dark blue (the
+    colours of ``WRONG_RGB``); beside it the ``2 zoom_px``-px square around the largest
+    8-connected cluster of wrong pixels off depth edges (on them when there are none), enlarged.
+    Written atomically; returns the path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch, Rectangle
+    from scipy import ndimage
+
+    from gbscan.io import write_figure_png
+
+    valid, bad, edge, lit = (np.asarray(a, bool) for a in (valid, bad, depth_edge, lit))
+    rgb = np.asarray(image, np.float64) * 0.25
+    layers = {"unreported": lit & ~valid, "right": valid & ~bad, "wrong_edge": bad & edge, "wrong": bad & ~edge}
+    for key, m in layers.items():
+        rgb[m] = WRONG_RGB[key]
+    rgb = rgb.astype(np.uint8)
+    focus = layers["wrong"] if layers["wrong"].any() else layers["wrong_edge"]
+    H, W = focus.shape
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.6), dpi=100, gridspec_kw={"width_ratios": [W / H, 1]})
+    axes[0].imshow(rgb, interpolation="nearest")
+    if focus.any():
+        lab, n = ndimage.label(focus, structure=np.ones((3, 3), bool))
+        big = 1 + int(np.argmax(ndimage.sum(focus, lab, range(1, n + 1))))
+        ys, xs = np.nonzero(lab == big)
+        cy, cx = int(np.median(ys)), int(np.median(xs))
+        y0, x0 = min(max(cy - zoom_px, 0), max(H - 2 * zoom_px, 0)), min(max(cx - zoom_px, 0), max(W - 2 * zoom_px, 0))
+        axes[1].imshow(rgb[y0:y0 + 2 * zoom_px, x0:x0 + 2 * zoom_px], interpolation="nearest",
+                       extent=(x0 - 0.5, x0 + 2 * zoom_px - 0.5, y0 + 2 * zoom_px - 0.5, y0 - 0.5))
+        axes[0].add_patch(Rectangle((x0 - 0.5, y0 - 0.5), 2 * zoom_px, 2 * zoom_px, fill=False, ec="white", lw=0.8))
+        axes[1].set_title(f"rows {y0}-{y0 + 2 * zoom_px - 1}, columns {x0}-{x0 + 2 * zoom_px - 1}", fontsize=9)
+    else:
+        axes[1].set_axis_off()
+    axes[0].set_axis_off()
+    labels = {"right": "reported, right stripe", "wrong": "wrong stripe, off depth edges",
+              "wrong_edge": "wrong stripe, on depth edges", "unreported": "lit, not reported"}
+    axes[0].legend(handles=[Patch(color=np.array(WRONG_RGB[k]) / 255, label=f"{labels[k]} ({int(layers[k].sum())})")
+                            for k in ("right", "wrong", "wrong_edge", "unreported")],
+                   loc="lower right", fontsize=7, framealpha=0.85)
+    axes[0].set_title(name, fontsize=10)
+    path = write_figure_png(path, fig, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
 def unindexed_by_why(sm, cand) -> dict:
     """{why: pixels} of the pixels of ``cand`` (lit, off depth edges) that ``sm`` (decoded with
     keep_stages) left unindexed, by their region's ``RegionIndex.why`` ("too few markers (k < n)"
@@ -360,17 +422,18 @@ def working_volume(depth_range):
 
 
 def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = True,
-          stripe_range=None, jpeg: dict | None = None) -> dict:
+          stripe_range=None, jpeg: dict | None = None, pictures: Path | None = None) -> dict:
     """Decode every scene with ``params`` (and the working volume ``stripe_range``); per-scene
-    lines (and wrong regions) when ``show``.  Returns the totals: lit non-edge pixels, reported,
-    wrong, wrong_edge, bad_scenes, scenes."""
+    lines (and wrong regions) when ``show``; ``pictures``: a folder for a :func:`wrong_picture` of
+    each scene with wrong pixels.  Returns the totals: lit non-edge pixels, reported, wrong, wrong_edge,
+    bad_scenes, scenes, pictures (their paths)."""
     from gbscan.decode import decode
     from gbscan.pattern import PatternSpec
 
     spec = PatternSpec()
     out = print if show else (lambda *a, **k: None)
     tot = {"lit": 0, "reported": 0, "wrong": 0, "wrong_edge": 0, "bad_scenes": 0, "scenes": len(scenes),
-           "sq_err": 0.0, "n_err": 0, "over_1px": 0, "unindexed": {}}
+           "sq_err": 0.0, "n_err": 0, "over_1px": 0, "unindexed": {}, "pictures": []}
     out(f"{'scene':26s} {'preset':16s} {'reported%':>9s} {'wrong':>6s} {'wrong_edge':>10s} {'col_rms':>7s} "
         f"{'>1px':>5s} {'ms':>6s}")
     for k, (name, preset, seed, ss, factory) in enumerate(scenes):
@@ -400,6 +463,12 @@ def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = 
         for why, n in unindexed_by_why(sm, cand).items():
             per = tot["unindexed"].setdefault(why, {})
             per[name] = per.get(name, 0) + n
+        if pictures is not None and counts["wrong"] + counts["wrong_edge"] > 0:
+            from gbscan import sim
+
+            bad = sim.column_errors(sm.column, sm.valid, truth, spec.stripe_px)[1]
+            tot["pictures"].append(wrong_picture(pictures / f"wrong_{name}.png", name, image, sm.valid, bad,
+                                                 depth_edge, lit))
         out(f"{name:26s} {preset:16s} {100.0 * rep / max(cand.sum(), 1):9.2f} {counts['wrong']:6d} "
             f"{counts['wrong_edge']:10d} {col_rms:7.3f} {int((np.abs(e) > 1.0).sum()):5d} {(t2 - t1) * 1e3:6.0f}",
             flush=True)
@@ -424,6 +493,7 @@ def main(argv=None) -> int:
                          "camera's left: the multi-object scene at 600-760 mm, head, sphere, step, seeds 0-2, 21 "
                          "frames; docs/method.md 'Known limits')")
     ap.add_argument("--edges", action="store_true", help="also list regions wrong only on depth-edge pixels")
+    ap.add_argument("--out", help="folder for a picture of each scene with pixels on wrong stripes (created)")
     ap.add_argument("--unwrap", action="append", default=[], metavar="NAME=VALUE",
                     help="override an UnwrapParams field (repeatable), e.g. --unwrap link_rows=3")
     ap.add_argument("--decode", action="append", default=[], metavar="NAME=VALUE",
@@ -458,6 +528,11 @@ def main(argv=None) -> int:
     cache = Path(args.cache) if args.cache else None
     if cache is not None:
         make_dir(cache, "--cache")
+    out = Path(args.out) if args.out else None
+    if out is not None and args.blur_grid:
+        ap.error("--out: pictures of one sweep, not of --blur-grid's")
+    if out is not None:
+        make_dir(out, "--out")
     try:   # the fields as the commands' --decode-param reads them (numbers, switches, none)
         over = pairs_to_kwargs(UnwrapParams, args.unwrap, "--unwrap")
         dover = pairs_to_kwargs(DecodeParams, args.decode, "--decode")   # unwrap.NAME too
@@ -482,12 +557,14 @@ def main(argv=None) -> int:
             print(f"{sg:7.2f} {100.0 * tot['reported'] / max(tot['lit'], 1):9.2f} {tot['wrong']:6d} "
                   f"{tot['wrong_edge']:10d} {tot['bad_scenes']:>7d}/{tot['scenes']}", flush=True)
         return 0
-    tot = sweep(params, scenes, cache, args.edges, stripe_range=volume, jpeg=jpeg)
+    tot = sweep(params, scenes, cache, args.edges, stripe_range=volume, jpeg=jpeg, pictures=out)
     rms = (tot["sq_err"] / tot["n_err"]) ** 0.5 if tot["n_err"] else float("nan")
     print(f"{'TOTAL':26s} {'':16s} {100.0 * tot['reported'] / max(tot['lit'], 1):9.2f} {tot['wrong']:6d} "
           f"{tot['wrong_edge']:10d} {rms:7.3f} {tot['over_1px']:5d}   scenes with wrong pixels: "
           f"{tot['bad_scenes']}/{tot['scenes']}")
     print(unindexed_line(tot))
+    if out is not None:
+        print(f"pictures of the scenes with wrong pixels: {len(tot['pictures'])} in {out}")
     return 0
 
 

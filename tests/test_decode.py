@@ -3154,6 +3154,52 @@ def test_sweep_script_frame_sets(tmp_path, capsys):
     assert again.rsplit(None, 1)[0] == line.rsplit(None, 1)[0]
 
 
+def test_sweep_script_pictures_the_wrong_pixels(tmp_path, capsys):
+    """scripts/sweep_decode.py --out: ``wrong_picture`` colours the reported, wrong (off / on depth
+    edges) and unreported lit pixels and enlarges the largest cluster of wrong pixels off depth
+    edges; a sweep writes one picture per scene with wrong pixels (none for a scene without);
+    ``--out`` with ``--blur-grid`` is refused."""
+    import importlib.util
+    from pathlib import Path
+
+    import cv2
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "sweep_decode.py"
+    spec = importlib.util.spec_from_file_location("sweep_decode", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    H, W = 120, 160
+    image = np.full((H, W, 3), 200, np.uint8)
+    lit = np.zeros((H, W), bool)
+    lit[10:110, 10:150] = True
+    valid = lit.copy()
+    valid[10:20] = False                         # lit, not reported
+    bad = np.zeros((H, W), bool)
+    bad[80:84, 120:126] = True                   # a cluster of 24 off depth edges
+    bad[30, 40] = True                           # a lone one
+    edge = np.zeros((H, W), bool)
+    edge[50:52, 60:64] = True
+    bad[50:52, 60:64] = True                     # 8 on a depth edge
+    got = mod.wrong_picture(tmp_path / "w.png", "synthetic", image, valid, bad, edge, lit)
+    assert got == tmp_path / "w.png" and got.is_file()
+    pic = cv2.imread(str(got))
+    assert pic is not None and pic.shape[0] > 200 and pic.shape[1] > 400
+    # the close-up shows the big cluster: the figure holds red pixels ((255, 40, 40), BGR in OpenCV)
+    red = (pic[..., 2] > 230) & (pic[..., 1] < 80) & (pic[..., 0] < 80)
+    assert red.sum() > 24
+    # no wrong pixel at all: the close-up is left out, the picture still written
+    mod.wrong_picture(tmp_path / "none.png", "none", image, valid, np.zeros((H, W), bool), edge, lit)
+    assert (tmp_path / "none.png").is_file()
+    with pytest.raises(SystemExit) as e:
+        mod.main(["--out", str(tmp_path / "p"), "--blur-grid", "1,2"])
+    assert e.value.code == 2
+    # a sweep of one scene without wrong pixels writes no picture, and says so
+    capsys.readouterr()
+    assert mod.main(["--set", "main", "--only", "plane_tilt_0_s0", "--out", str(tmp_path / "p")]) == 0
+    out = capsys.readouterr().out
+    assert "pictures of the scenes with wrong pixels: 0 in" in out and not any((tmp_path / "p").iterdir())
+
+
 def test_sweep_script_counts_unindexed_pixels_by_why():
     """scripts/sweep_decode.py's last line: the unindexed lit non-edge pixels by their region's why
     (the "too few markers (k < n)" whys as one), with the scene that loses most to each."""
