@@ -3117,7 +3117,13 @@ def test_sweep_script_frame_sets(tmp_path, capsys):
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     fran = 1 if sim.scenes.FRAN_PATH.is_file() else 0
-    assert [len(mod.scene_list(False, w)) for w in mod.SETS] == [44 + 4 * fran, 44, 14 + 2 * fran, 33, 21, 45, 32]
+    assert [len(mod.scene_list(False, w)) for w in mod.SETS] == [44 + 4 * fran, 44, 14 + 2 * fran, 33, 21, 45, 32, 32]
+    # the held-out frames share no depth with the other sets' multi-object frames
+    held = mod.scene_list(False, "holdout")
+    assert len({n for n, *_ in held}) == 32 and all(n.startswith("holdout_") for n, *_ in held)
+    others = {n.split("_")[1] for w in mod.SETS if w != "holdout" for n, *_ in mod.scene_list(False, w)
+              if n.startswith("multi_")}
+    assert not others & {f"{d:.0f}" for d in mod.HOLDOUT_DEPTHS_MM}
     rig, base = mod._rig_and_preset("typical/b150")   # the baselines set: the paper rig, projector moved
     assert base == "typical" and np.linalg.norm(rig.projector_centre) == pytest.approx(150.0)
     rig, base = mod._rig_and_preset("typical/b-200")  # the mirrored set: the projector on the left
