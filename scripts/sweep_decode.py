@@ -205,23 +205,32 @@ LAYOUT_DEPTHS_MM = (620.0, 680.0, 740.0, 800.0)
 LAYOUT_WALLS = (800.0 / 650.0, 1000.0 / 650.0)
 
 
-def _layout_set(S, quick: bool) -> list:
-    # the multi-object scene at four depths with its wall nearer and farther than the main set's
-    # (1.23 / 1.54 x the depth against 1.38), objects of albedo 0.7 or 0.4, the panel patched
-    # (seed 0) or plain (0.6, seed 1): 32 frames of layouts no rule was tuned on (twenty-seventh
-    # session; docs/method.md "Known limits")
+def _multi_grid(S, prefix: str, depths, walls, albedo: float, seeds: tuple[int, int], plain: float,
+                quick: bool) -> list:
+    # the multi-object scene at each depth x wall (times the depth) x albedo (the scene's, or
+    # ``albedo``) x seed (the first: the panel patched; the second: plain, of albedo ``plain``)
     out = []
-    for d in LAYOUT_DEPTHS_MM:
-        for w in LAYOUT_WALLS:
-            for a in (None, 0.4):
-                for seed in (0, 1):
-                    name = f"multi_{d:.0f}_wall{d * w:.0f}{'' if a is None else f'_a{a:g}'}{'_plain' if seed else ''}_s{seed}"
+    for d in depths:
+        for w in walls:
+            for a in (None, albedo):
+                for seed in seeds:
+                    flat = seed == seeds[1]
+                    name = f"{prefix}_{d:.0f}_wall{d * w:.0f}{'' if a is None else f'_a{a:g}'}{'_plain' if flat else ''}_s{seed}"
                     out.append((name, "typical", seed, 3,
-                                lambda d=d, w=w, a=a, seed=seed: S.multi_object(d, wall_mm=d * w, albedo=a,
-                                                                                panel_albedo=0.6 if seed else None)))
+                                lambda d=d, w=w, a=a, flat=flat: S.multi_object(d, wall_mm=d * w, albedo=a,
+                                                                                panel_albedo=plain if flat else None)))
     return out[::3] if quick else out
 
 
+def _layout_set(S, quick: bool) -> list:
+    # the multi-object scene at four depths with its wall nearer and farther than the main set's
+    # (1.23 / 1.54 x the depth against 1.38), objects of albedo 0.7 or 0.4, the panel patched
+    # (seed 0) or plain (0.6, seed 1): 32 frames of layouts no rule was tuned on until the
+    # twenty-ninth session made three from them (docs/method.md "Known limits")
+    return _multi_grid(S, "multi", LAYOUT_DEPTHS_MM, LAYOUT_WALLS, 0.4, (0, 1), 0.6, quick)
+
+
+#: the ``holdout`` set's depths (mm) and walls (times the depth): none of the other sets'
 HOLDOUT_DEPTHS_MM = (590.0, 710.0, 770.0, 830.0)
 HOLDOUT_WALLS = (1.3, 1.46)
 
@@ -232,16 +241,7 @@ def _holdout_set(S, quick: bool) -> list:
     # scene's albedo or 0.55, the panel patched (seed 2) or plain (0.5, seed 3): 32 frames.  Run
     # to check that a rule found on the other sets holds; a rule made from one of these frames
     # spends the set (say so in docs/history.md and make another)
-    out = []
-    for d in HOLDOUT_DEPTHS_MM:
-        for w in HOLDOUT_WALLS:
-            for a in (None, 0.55):
-                for seed in (2, 3):
-                    name = f"holdout_{d:.0f}_wall{d * w:.0f}{'' if a is None else f'_a{a:g}'}{'_plain' if seed == 3 else ''}_s{seed}"
-                    out.append((name, "typical", seed, 3,
-                                lambda d=d, w=w, a=a, seed=seed: S.multi_object(d, wall_mm=d * w, albedo=a,
-                                                                                panel_albedo=0.5 if seed == 3 else None)))
-    return out[::3] if quick else out
+    return _multi_grid(S, "holdout", HOLDOUT_DEPTHS_MM, HOLDOUT_WALLS, 0.55, (2, 3), 0.5, quick)
 
 
 def _mirrored_set(S, quick: bool) -> list:
