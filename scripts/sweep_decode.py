@@ -58,7 +58,8 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 
 
 #: the frame sets of ``--set``: the sweep's 48 scenes, the same objects under room light, the clean
-#: preset, other baselines, the rig mirrored, the multi-object scene's panel plain, other layouts of it
+#: preset, other baselines, the rig mirrored, the multi-object scene's panel plain, other layouts of
+#: it, and frames of it kept out of the rules' making
 SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels", "layouts", "holdout")
 
 
