@@ -153,10 +153,11 @@ class UnwrapParams:
         peel), so the repairs see what they saw before: applied inside the indexing it spared
         the retry of a frame whose re-unwrapping had kept a panel unlinked, and the panel linked
         8 stripes off (the multi-object scene at a 140-mm baseline), and it let a split cut a
-        region whose part was then indexed 12 stripes off (175 mm).  ``scripts/sweep_decode.py``, no pixel on a wrong stripe added in any set:
-        reported 83.76 -> 85.12 % (main), 91.83 -> 92.66 (room light), 89.91 -> 90.72 (clean),
-        85.30 -> 87.07 (baselines), 88.74 -> 91.76 (mirrored), 87.95 -> 89.13 (panels),
-        83.31 -> 84.12 % (layouts).  Their ``why`` is :data:`STRIPE_OK`.
+        region whose part was then indexed 12 stripes off (175 mm).  ``scripts/sweep_decode.py``,
+        no pixel on a wrong stripe added in any set: reported 83.76 -> 85.12 % (main), 91.83 ->
+        92.66 (room light), 89.91 -> 90.72 (clean), 85.30 -> 87.07 (baselines), 88.74 -> 91.76
+        (mirrored), 87.95 -> 89.13 (panels), 83.31 -> 84.12 % (layouts).  Their ``why`` is
+        :data:`STRIPE_OK`.
     max_mismatch : largest acceptable mismatch of the best offset, as a fraction of the evidence.
     conflict_run_px : a run of at least this many px whose marker/non-marker colour contradicts its
         region's offset is a disagreement (:func:`marker_conflicts`).

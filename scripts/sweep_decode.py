@@ -324,8 +324,9 @@ def load_or_render(name, preset, seed, ss, factory, cache: Path | None, jpeg: di
     return out
 
 
-def wrong_regions(sm, truth, depth_edge, stripe_px: int) -> tuple[dict, list[dict]]:
-    """Per scene counts and the wrong pixels grouped by region (``sm`` decoded with keep_stages)."""
+def wrong_regions(sm, truth, depth_edge, stripe_px: int) -> tuple[dict, list[dict], np.ndarray]:
+    """Per scene counts, the wrong pixels grouped by region (``sm`` decoded with keep_stages) and
+    the (H, W) bool map of the wrong pixels (:func:`gbscan.sim.column_errors`)."""
     from gbscan import sim
 
     err, bad = sim.column_errors(sm.column, sm.valid, truth, stripe_px)
@@ -345,7 +346,7 @@ def wrong_regions(sm, truth, depth_edge, stripe_px: int) -> tuple[dict, list[dic
             d.update(how=idx.why[g], markers=int(idx.markers_seen[g]), evidence=int(idx.evidence[g]),
                      mismatch=int(idx.mismatch[g]), runner_up=int(idx.runner_up[g]))
         rows.append(d)
-    return counts, rows
+    return counts, rows, bad
 
 
 #: ``wrong_picture``'s colours (RGB): reported on the right stripe, on a wrong one off / on depth
@@ -472,7 +473,7 @@ def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = 
               file=sys.stderr, flush=True)
         cand = lit & ~depth_edge
         rep = int((sm.valid & cand).sum())
-        counts, rows = wrong_regions(sm, truth, depth_edge, spec.stripe_px)
+        counts, rows, bad = wrong_regions(sm, truth, depth_edge, spec.stripe_px)
         # sub-pixel accuracy: column error of the reported non-edge pixels on their right stripe
         ok = sm.valid & cand & np.isfinite(truth)
         e = (sm.column - truth)[ok]
@@ -490,9 +491,6 @@ def sweep(params, scenes, cache: Path | None, edges: bool = False, show: bool = 
             per = tot["unindexed"].setdefault(why, {})
             per[name] = per.get(name, 0) + n
         if pictures is not None and counts["wrong"] + counts["wrong_edge"] > 0:
-            from gbscan import sim
-
-            bad = sim.column_errors(sm.column, sm.valid, truth, spec.stripe_px)[1]
             tot["pictures"].append(wrong_picture(pictures / f"wrong_{name}.png", name, image, sm.valid, bad,
                                                  depth_edge, lit))
         out(f"{name:26s} {preset:16s} {100.0 * rep / max(cand.sum(), 1):9.2f} {counts['wrong']:6d} "

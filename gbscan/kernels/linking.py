@@ -335,8 +335,9 @@ def grow_conflicts(rejected, seg_map, region, seg_row, seg_u0, seg_u1, seg_regio
     no rejected pixel yet (a part rejected: its row's evidence bounds it) whose span touches a
     rejected pixel of the same region (``region`` (H, W) int32) in the row above or below is
     rejected whole; repeated until nothing changes (a strip's rows without a marker of their own
-    -- segments of 3-4 stripes often have none -- go with the rows whose markers reject it).  ``seg_map`` (H, W) int32 the segment of each pixel (-1 none).  Returns
-    the (n,) int64 segments rejected so.
+    -- segments of 3-4 stripes often have none -- go with the rows whose markers reject it).
+    ``seg_map`` (H, W) int32 the segment of each pixel (-1 none).  Returns the (n,) int64
+    segments rejected so.
     """
     H, W = rejected.shape
     n_seg = seg_row.shape[0]
