@@ -450,6 +450,15 @@ class DecodeParams:
         points unchanged.  1.6 removed the same wrong pixels and 9 more edge ones, for 0.7-0.8
         points of the head.  Cost 0.3 ms a 640x480 frame
         (0.8 ms on the multi-object scene: one test per column stretch end).
+    sandwich_rows : reported runs of one region along a column, at most this many rows long,
+        that the surface around them (other regions' runs above and below, within
+        ``SANDWICH_GAP_ROWS``) continues to the sub-pixel a whole number of periods away are
+        masked "unindexed" (0: never).  See :func:`sandwich_guard`.  The case (the second held-out
+        set, ``scripts/sweep_decode.py --set holdout2``, thirtieth session): the multi-object scene
+        at 565 mm with its wall at 706 mm, seed 4.  Right of the box the wall's stripes line up
+        with the box's 14 stripes on, and 14 rows of a wall strip are welded along their rows into
+        the box's region (its 6 markers fit, none of the strip's), between two regions of the wall
+        that the strip continues above and below: 217 and 194 pixels 14 stripes off.
     resample : decode the frame shrunk by this factor (the linear mean over each pixel's area, as a
         camera with larger pixels sees it; ``cv2.INTER_AREA``) and expand the result back to every
         pixel (:func:`decode`).  0, the default: frames whose stripes span more than
@@ -568,6 +577,7 @@ class DecodeParams:
     rim_guard_no_boundary: bool = True
     join_transitions: bool = True
     step_guard_ratio: float = 1.9
+    sandwich_rows: int = 32
     resample: float = 0.0
     confidence_spread_px: float = 0.15
     crop: bool = True
@@ -638,6 +648,9 @@ class DecodeParams:
             bad("subsampled_chroma", f"must be one of {', '.join(SUBSAMPLED_CHROMA)}, got {self.subsampled_chroma!r}")
         if not (float(self.step_guard_ratio) == 0 or float(self.step_guard_ratio) > 1):
             bad("step_guard_ratio", "must be 0 (off) or a brightness ratio above 1")
+        if isinstance(self.sandwich_rows, bool) or int(self.sandwich_rows) != self.sandwich_rows \
+                or int(self.sandwich_rows) < 0:
+            bad("sandwich_rows", f"must be a whole number of rows >= 0 (0 disables), got {self.sandwich_rows!r}")
         if not (float(self.rim_bias_px) >= 0) or int(self.rim_end_px) < 0:
             bad("rim_bias_px/rim_end_px", "must be >= 0 (0 disables the rule)")
         dr = self.rim_end_dim_ratio
@@ -1752,6 +1765,46 @@ def step_guard(image_rgb: np.ndarray, mask: np.ndarray, column: np.ndarray, stri
     return n
 
 
+#: sandwich_guard: the most rows between a run and its neighbour runs, the tolerance (projector px)
+#: of the continuations at its ends, and of its rows against the surface around it
+SANDWICH_GAP_ROWS = 16
+SANDWICH_TOL_PX = 1.0
+SANDWICH_LINE_PX = 1.5
+
+
+def sandwich_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confidence: np.ndarray,
+                   region: np.ndarray, pattern: PatternSpec, params: DecodeParams,
+                   counts: np.ndarray | None = None) -> int:
+    """Mask ``UNINDEXED`` the short runs along a column that the surface around them continues a
+    whole number of periods away; returns their count.
+
+    mask (H, W) uint8, column (H, W) float32, stripe (H, W) int32, confidence (H, W) float32:
+    updated in place (NaN / -1 / 0 where masked), as is ``counts`` (n_codes,) when given; region
+    (H, W) int32.
+
+    Why: where a near surface's stripes line up with a far one's (the two an even number of
+    stripes apart), the rows that cross a silhouette unparted weld a strip of the far surface into
+    the near one's region, and the near one's markers index it.  Seen down a column, the strip is
+    a short run of the near surface's region between two runs of the far surface (other regions,
+    indexed by their own markers), and it continues them: their columns carried on across the
+    rim rows reach it a whole number of periods off, its own carried on reach the run below the
+    same number back, and its rows lie on the far surface's line.  A near surface's own short
+    run (a thin bar in front of a wall) does that only when its disparity is a whole number of
+    periods and the bar is flat and parallel to the wall: then its pixels are dropped, not
+    guessed (:func:`gbscan.kernels.sandwich_guard`, ``params.sandwich_rows``).
+    """
+    rows = int(params.sandwich_rows)
+    if rows <= 0:
+        return 0
+    from . import kernels
+
+    n = int(kernels.sandwich_guard(mask, column, stripe, confidence, np.ascontiguousarray(region, dtype=np.int32),
+                                   float(2 * pattern.stripe_px), rows, SANDWICH_GAP_ROWS, SANDWICH_TOL_PX,
+                                   SANDWICH_LINE_PX, OK, UNINDEXED))
+    _unreported(counts, n, UNINDEXED)
+    return n
+
+
 def _mark_spans(reason: np.ndarray, spans: np.ndarray, code: int) -> None:
     """Set ``code`` on the still-OK pixels of row spans ``(v, u_first, u_last)`` (n, 3) of
     ``reason`` (H, W) uint8, in place (finish_pixels keeps any non-zero input reason)."""
@@ -2605,6 +2658,7 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
                         bool(params.rim_guard_no_boundary), img, float(params.rim_end_dim_ratio),
                         float(params.camera_gamma), guard_lit_rows(params))
     n_step = step_guard(img, mask, column, stripe, conf, region, params, counts)
+    sandwich_guard(mask, column, stripe, conf, region, pattern, params, counts)
     _unreported(counts, int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED)), ISOLATED)
     sigma = None
     floor = None

@@ -37,7 +37,9 @@ depth edges when there are any).
     python scripts/sweep_decode.py --cache DIR --set panels       # the multi-object scene's panel plain (45 frames)
     python scripts/sweep_decode.py --cache DIR --set layouts      # other depths, walls, albedos (32 frames)
     python scripts/sweep_decode.py --cache DIR --set layouts --out DIR   # and pictures of the wrong pixels
-    python scripts/sweep_decode.py --cache DIR --set holdout      # frames no rule was made from (32 frames)
+    python scripts/sweep_decode.py --cache DIR --set holdout      # frames kept out of the rules (32; one rule since)
+    python scripts/sweep_decode.py --cache DIR --set holdout2     # 32 frames more (one rule since)
+    python scripts/sweep_decode.py --cache DIR --set holdout3     # 32 frames more, no rule made from them
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
 wrong non-edge pixels under it (all wrong regions with ``--edges``), and a total.  Progress lines go to stderr.  Renders are cached in ``--cache`` (npz).
@@ -59,8 +61,10 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 
 #: the frame sets of ``--set``: the sweep's 48 scenes, the same objects under room light, the clean
 #: preset, other baselines, the rig mirrored, the multi-object scene's panel plain, other layouts of
-#: it, and frames of it kept out of the rules' making
-SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels", "layouts", "holdout")
+#: it, and three sets of frames of it kept out of the rules' making (the first two each spent by a
+#: rule of the thirtieth session)
+SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels", "layouts", "holdout", "holdout2",
+        "holdout3")
 
 
 def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str, int, int, object]]:
@@ -85,6 +89,10 @@ def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str,
         return _layout_set(S, quick)
     if which == "holdout":
         return _holdout_set(S, quick)
+    if which == "holdout2":
+        return _multi_grid(S, "holdout2", HOLDOUT2_DEPTHS_MM, HOLDOUT2_WALLS, 0.65, (4, 5), 0.45, quick)
+    if which == "holdout3":
+        return _multi_grid(S, "holdout3", HOLDOUT3_DEPTHS_MM, HOLDOUT3_WALLS, 0.5, (6, 7), 0.55, quick)
     if which != "main":
         raise ValueError(f"unknown frame set {which!r}, expected one of {SETS}")
     out = []
@@ -243,6 +251,21 @@ def _holdout_set(S, quick: bool) -> list:
     # to check that a rule found on the other sets holds; a rule made from one of these frames
     # spends the set (say so in docs/history.md and make another)
     return _multi_grid(S, "holdout", HOLDOUT_DEPTHS_MM, HOLDOUT_WALLS, 0.55, (2, 3), 0.5, quick)
+
+
+#: the ``holdout2`` set's depths (mm) and walls (times the depth), made in the thirtieth session
+#: when a rule (``UnwrapParams.tilt_follow_rows``) was made from a ``holdout`` frame: none of the
+#: other sets' depths or walls; objects of the scene's albedo or 0.65, the panel patched (seed 4)
+#: or plain (0.45, seed 5).  The same use: check a rule on it, do not tune on it (spent the same
+#: session by ``DecodeParams.sandwich_rows``)
+HOLDOUT2_DEPTHS_MM = (565.0, 675.0, 785.0, 855.0)
+HOLDOUT2_WALLS = (1.25, 1.52)
+
+#: the ``holdout3`` set's (thirtieth session, when a rule, ``DecodeParams.sandwich_rows``, was made
+#: from a ``holdout2`` frame): other depths and walls again, objects of the scene's albedo or 0.5,
+#: the panel patched (seed 6) or plain (0.55, seed 7)
+HOLDOUT3_DEPTHS_MM = (635.0, 725.0, 815.0, 875.0)
+HOLDOUT3_WALLS = (1.35, 1.6)
 
 
 def _mirrored_set(S, quick: bool) -> list:
@@ -518,7 +541,9 @@ def main(argv=None) -> int:
                          "frames; docs/method.md 'Known limits'), panels (the multi-object scene's panel plain, "
                          "45 frames), layouts (other depths, walls and albedos, 32 frames), holdout (32 frames "
                          "of the multi-object scene kept out of the rules' making: check a rule on them, do not "
-                         "tune on them)")
+                         "tune on them; one rule was made from them in the thirtieth session), holdout2, holdout3 "
+                         "(32 frames more each, at other depths, walls and albedos, made then; one rule was made "
+                         "from holdout2)")
     ap.add_argument("--edges", action="store_true", help="also list regions wrong only on depth-edge pixels")
     ap.add_argument("--out", help="folder for a picture of each scene with pixels on wrong stripes (created)")
     ap.add_argument("--unwrap", action="append", default=[], metavar="NAME=VALUE",

@@ -2216,6 +2216,13 @@ def _tilted_planes(tilt_left, tilt_right, weld_rows, seam=40, rows=60, width=88,
         if v not in weld_rows:
             lab[v, seam - 1:seam + 2] = N
 
+    return lab, _true_positions(model, half, noise, seed)
+
+
+def _true_positions(model, half, noise, seed):
+    """A ``j_x`` function for step 1's segments of labels drawn from ``model(u, v)`` (the
+    stripes' offset at column u of row v, boundaries every ``half`` px): each junction's true
+    boundary position, plus ``noise`` px (seeded)."""
     def jx(segs):
         rng = np.random.default_rng(seed)
         out = np.empty(segs.j_seg.size, np.float64)
@@ -2224,7 +2231,7 @@ def _tilted_planes(tilt_left, tilt_right, weld_rows, seam=40, rows=60, width=88,
             off = model(a + 1, v)
             out[j] = off + np.floor((a + 1 - off) / half) * half   # the boundary in (a, a + 1]
         return out + noise * rng.standard_normal(out.size)
-    return lab, jx
+    return jx
 
 
 def _memo(n):
@@ -2291,7 +2298,9 @@ def test_tilt_step_cuts_part_the_welded_rows_only():
     for rows in weld:
         assert 1 <= cut[v == rows].sum() <= 3
     assert _tilt_cuts(lab, jx, tilt_step=0.0)[1].sum() == 0
-    assert _tilt_cuts(lab, jx, tilt_break_min=17)[1].sum() == 0   # 15 parted rows around row 30
+    assert _tilt_cuts(lab, jx, tilt_break_min=17, tilt_follow_rows=0)[1].sum() == 0   # 15 parted rows around row 30
+    # (the follow-on cut of a line's welded end cuts them then: rows 0-27 parted at the seam)
+    assert set(v[_tilt_cuts(lab, jx, tilt_break_min=17)[1] == 1]) == set(weld)
     lab2, jx2 = _tilted_planes(0.1, 0.1, weld, noise=0.02)
     assert _tilt_cuts(lab2, jx2)[1].sum() == 0
     lab3, jx3 = _tilted_planes(0.1, 0.0, range(60), noise=0.02)
@@ -2304,6 +2313,75 @@ def test_tilt_step_cuts_part_the_welded_rows_only():
 
     assert parted() == (list(weld), int(cut.sum()))
     assert parted(tilt_step=0.0) == ([], 0)
+
+
+def _slanted_silhouette(tilt_left, tilt_right, parted_rows, end_row=48, slant=-1.5, seam_row=44, rows=60,
+                        width=120, period=8.0, noise=0.02, seed=0):
+    """Labels like :func:`_tilted_planes`, the seam slanting: at column ``seam_row``'s 70 plus
+    ``slant`` px a row.  The left surface ends at ``end_row`` (the right one fills the rows below
+    it, as a wall below an object); the rows in ``parted_rows`` have 3 unlabelled px at the seam,
+    the others above ``end_row`` cross it, the stripes lined up in row ``seam_row``."""
+    half = period / 2
+
+    def seam(v):
+        return 70 + slant * (v - seam_row)
+
+    def model(u, v):
+        left = v < end_row and u < seam(v)
+        return tilt_left * v if left else tilt_right * v + (tilt_left - tilt_right) * seam_row
+
+    lab = np.zeros((rows, width), np.uint8)
+    for v in range(rows):
+        for u in range(width):
+            k = int(np.floor((u - model(u, v)) / half))
+            lab[v, u] = G if k % 2 == 0 else B
+        if v in parted_rows:
+            c = int(round(seam(v)))
+            lab[v, c - 1:c + 2] = N
+
+    return lab, _true_positions(model, half, noise, seed), seam
+
+
+def test_tilt_follow_cuts_follow_a_slanted_silhouette_past_its_parted_rows():
+    """uw.UnwrapParams.tilt_follow_rows (kernels.tilt_follow_cuts): a silhouette slanting 1.5 px a
+    row, parted in rows 0-39, its last rows 40-47 welded across it (the near surface leaning 0.2
+    px a row, the far one 0; the far one alone below).  tilt_step_cuts alone leaves them (the
+    line leaves their column within 2 rows); the follow-on cut cuts each of them once, at the
+    junction next to the seam, and nothing else (the last two may stay: their boundaries' tracks run on into
+    the far surface below, which halves their lean).  Not when both sides lean alike, nor when the parted line
+    above them is shorter than ``tilt_follow_rows`` (rows 36-39 only, the rows above crossing
+    too: a crease); the same upwards (the frame flipped)."""
+    weld = range(40, 48)
+    lab, jx, seam = _slanted_silhouette(0.2, 0.0, range(0, 40))
+    segs, cut, _ = _tilt_cuts(lab, jx, tilt_follow_rows=0)
+    assert cut.sum() == 0
+    segs, cut, _ = _tilt_cuts(lab, jx)
+    v = segs.row[segs.j_seg]
+    got = v[cut == 1].tolist()
+    assert len(got) == len(set(got)) and set(range(40, 46)) <= set(got) <= set(weld)
+    assert np.all(np.abs(segs.j_ua[cut == 1] + 0.5 - seam(v[cut == 1])) <= 4.5)   # (junctions 4 px apart)
+    assert _tilt_cuts(lab, jx, tilt_step=0.0)[1].sum() == 0
+    lab2, jx2, _ = _slanted_silhouette(0.2, 0.2, range(0, 40))
+    assert _tilt_cuts(lab2, jx2)[1].sum() == 0
+    lab3, jx3, _ = _slanted_silhouette(0.2, 0.0, range(36, 40))
+    assert _tilt_cuts(lab3, jx3)[1].sum() == 0
+    segs3, cut3, _ = _tilt_cuts(lab3, jx3, tilt_follow_rows=4)
+    assert set(segs3.row[segs3.j_seg][cut3 == 1]) >= set(range(40, 46))
+    # upwards: the frame and the positions flipped top to bottom
+    flip = lab[::-1].copy()
+
+    def jx_flip(s):
+        s2 = dataclasses.replace(s, row=(lab.shape[0] - 1 - s.row).astype(s.row.dtype))
+        return jx(s2)
+    segs_f, cut_f, _ = _tilt_cuts(flip, jx_flip)
+    vf = lab.shape[0] - 1 - segs_f.row[segs_f.j_seg]
+    assert sorted(vf[cut_f == 1].tolist()) == sorted(got)
+    # through unwrap: each welded row is two segments or more, the stats count the cuts
+    un = uw.unwrap(lab, uw.UnwrapParams(), locate=lambda s: jx(s).astype(np.float32))
+    assert all((un.segments.row == r).sum() >= 2 for r in got)
+    assert un.stats["tilt_cuts"] >= len(got)
+    un0 = uw.unwrap(lab, uw.UnwrapParams(tilt_follow_rows=0), locate=lambda s: jx(s).astype(np.float32))
+    assert un0.stats["tilt_cuts"] == 0
 
 
 def test_tilt_step_cuts_count_rows_parted_by_a_cut_where_the_tilt_steps_across_it():

@@ -821,8 +821,8 @@ def junction_tilts(j_x, j_seg, seg_row, j_la, j_lb, H, rows, tol_px, min_rows):
 
 
 @njit(cache=True, nogil=True)
-def _median_sorted(a, n):
-    # median of a[:n], sorting it in place (insertion sort: n is a handful)
+def _sort_few(a, n):
+    # sort a[:n] in place (insertion sort: n is a handful)
     for i in range(1, n):
         t = a[i]
         k = i - 1
@@ -830,6 +830,12 @@ def _median_sorted(a, n):
             a[k + 1] = a[k]
             k -= 1
         a[k + 1] = t
+
+
+@njit(cache=True, nogil=True)
+def _median_sorted(a, n):
+    # median of a[:n], sorting it in place
+    _sort_few(a, n)
     return 0.5 * (a[(n - 1) // 2] + a[n // 2])
 
 
@@ -1059,3 +1065,276 @@ def tilt_step_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_
             if n >= break_min:
                 cut[i] = 1
     return cut
+
+
+@njit(cache=True, nogil=True)
+def _parting_near(ends, v, c, reach, W):
+    # the column of row v's parting (ends[v, u] != 0) nearest column c within reach px; -1 if none
+    for d in range(reach + 1):
+        if c - d >= 0 and ends[v, c - d] != 0:
+            return c - d
+        if c + d < W and ends[v, c + d] != 0:
+            return c + d
+    return -1
+
+
+@njit(cache=True, nogil=True)
+def _line_rows(ends, v, c, step, need, reach, H, W):
+    # how many rows (v's included) a line of partings runs from (v, c) in direction step, each
+    # row's parting within reach px of the last one's (slanted silhouettes), counted up to need,
+    # and the column of the last one counted
+    n = 0
+    last = c
+    while 0 <= v < H and n < need:
+        c = _parting_near(ends, v, c, reach, W)
+        if c < 0:
+            break
+        last = c
+        n += 1
+        v += step
+    return n, last
+
+
+@njit(cache=True, nogil=True)
+def tilt_follow_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, j_la, j_lb, H, W, rows, tol_px,
+                     break_px, window, min_n, step, z, floor, line_rows, cut, pre, tilt, done, stepped):
+    """Junctions where a welded row carries on a line of parted rows, the boundaries' tilt
+    stepping there: the silhouette of :func:`tilt_step_cuts` followed past the rows that end it.
+
+    That test asks for ``break_min`` of the rows around a junction parted within ``break_px`` of
+    its column, so it cannot see a slanted silhouette whose last rows are welded: the line leaves
+    the column within a few rows, and at its end only one side of it is parted.  Same tables,
+    tests and memo as :func:`tilt_step_cuts`; ``cut`` (n_j,) uint8 its result and ``pre`` (n_j,)
+    uint8 the spacing and bridge cuts (or empty) count as partings, as do segment ends (the
+    middle of a gap of at most ``2 break_px + 1`` px; not the frame's sides).
+
+    A pass down the frame (then one up): at each parting of row ``v - 1`` with none within
+    ``break_px`` in row ``v`` (the line ends there), whose line runs on upwards for at least
+    ``line_rows`` rows (each row's parting within ``break_px + 1`` px of the last one's; junction
+    positions step by a third of a stripe), the line is carried on one row at its slant over those
+    rows.  Of row ``v``'s junctions within ``break_px + 2`` px of there, with ``min_n`` junctions either
+    side in their segment, whose tilt steps by :func:`tilt_step_cuts`' test, the one whose two
+    neighbours' tilts differ most (the seam lies between them: near a slanted seam the boundaries'
+    tracks cross it, so the test passes over several junctions) is cut, and parts row ``v`` for the
+    next: a welded run of rows is followed while the tilt steps.  Returns (n_j,) uint8, the
+    junctions this adds.
+    """
+    nj = j_x.shape[0]
+    out = np.zeros(nj, np.uint8)
+    if line_rows <= 0 or nj == 0:
+        return out
+    ends = np.zeros((H, W), np.uint8)      # the partings: segment ends (not the frame's sides) and cuts
+    ns = seg_row.shape[0]
+    for s in range(ns):
+        # a parting: the middle of the gap to the next segment of the row when it is near, else
+        # each end that is not the frame's side
+        v = seg_row[s]
+        if 0 < seg_u0[s] and (s == 0 or seg_row[s - 1] != v or seg_u0[s] - seg_u1[s - 1] > 2 * break_px + 1):
+            ends[v, seg_u0[s]] = 1
+        if s + 1 < ns and seg_row[s + 1] == v and seg_u0[s + 1] - seg_u1[s] <= 2 * break_px + 1:
+            ends[v, (seg_u1[s] + seg_u0[s + 1]) // 2] = 1
+        elif seg_u1[s] < W - 1:
+            ends[v, seg_u1[s]] = 1
+    for j in range(nj):
+        if cut[j] != 0 or (pre.shape[0] != 0 and pre[j] != 0):
+            ends[seg_row[j_seg[j]], j_ua[j]] = 1
+    start = _row_junction_starts(j_seg, seg_row, H)
+    sstart = np.zeros(H + 1, np.int64)     # each row's first segment (segments are in row order)
+    for t in range(ns):
+        sstart[seg_row[t] + 1] += 1
+    for v in range(H):
+        sstart[v + 1] += sstart[v]
+    cols = np.empty(4 * W + 8, np.int64)   # one row's partings (segment ends, gaps' middles, cuts)
+    flagged = np.zeros(H, np.int64)        # each row's junctions cut (by either kernel or this one)
+    for j in range(nj):
+        if cut[j] != 0 or (pre.shape[0] != 0 and pre[j] != 0):
+            flagged[seg_row[j_seg[j]]] += 1
+    buf = np.empty(max(window, 1), np.float64)
+    for d in (1, -1):
+        v = 1 if d == 1 else H - 2
+        while 0 <= v < H and 0 <= v - d < H:
+            if start[v + 1] > start[v]:
+                # row v - d's partings, from its segments and its junctions cut (by either kernel
+                # or this pass: ends holds them all; listed from the tables, not by a scan of W)
+                r = v - d
+                m = 0
+                for t in range(sstart[r], sstart[r + 1]):
+                    for e in (np.int64(seg_u0[t]), np.int64((seg_u1[t] + seg_u0[min(t + 1, ns - 1)]) // 2),
+                              np.int64(seg_u1[t])):
+                        if 0 <= e < W and ends[r, e] != 0 and m < cols.shape[0]:
+                            cols[m] = e
+                            m += 1
+                if flagged[r] != 0:
+                    for j in range(start[r], start[r + 1]):
+                        if (cut[j] != 0 or out[j] != 0 or (pre.shape[0] != 0 and pre[j] != 0)) and m < cols.shape[0]:
+                            cols[m] = j_ua[j]
+                            m += 1
+                _sort_few(cols, m)   # (a handful a row)
+                last = -1
+                for q in range(m):
+                    c = cols[q]
+                    if c == last:
+                        continue
+                    last = c
+                    if _parting_near(ends, v, c, break_px, W) >= 0:
+                        continue   # (the line goes on in this row)
+                    n, far = _line_rows(ends, v - d, c, -d, line_rows, break_px + 1, H, W)
+                    if n < line_rows:
+                        continue
+                    # the line carried on one row at its slant over the rows counted; of the
+                    # junctions within break_px + 2 of there whose tilt steps, the one whose two
+                    # neighbours' tilts differ most (the seam lies between them)
+                    at = c + (c - far) / max(n - 1, 1)
+                    reach = break_px + 2.0   # (a stripe's junctions either side: 3-4 px apart)
+                    best = -1
+                    jump = -1.0
+                    for i in range(lower_bound(j_ua, start[v], start[v + 1], at - reach - 1.0), start[v + 1]):
+                        if j_ua[i] + 0.5 > at + reach:
+                            break
+                        sg = j_seg[i]
+                        if abs(j_ua[i] + 0.5 - at) > reach or i - seg_j0[sg] < min_n or seg_j1[sg] - 1 - i < min_n:
+                            continue
+                        if _steps(i, stepped, window, min_n, step, z, floor, buf, tilt, done, j_x, j_seg, seg_row,
+                                  seg_j0, seg_j1, j_ua, j_la, j_lb, start, H, rows, tol_px):
+                            g = abs(tilt[i + 1] - tilt[i - 1])
+                            g = 0.0 if np.isnan(g) else g
+                            if g > jump:
+                                best = i
+                                jump = g
+                    if best >= 0:   # (a parting for the next row)
+                        out[best] = 1
+                        ends[v, j_ua[best]] = 1
+                        flagged[v] += 1
+            v += d
+    return out
+
+
+# -- decoder: a short run sandwiched in a surface it continues (gbscan.decode.sandwich_guard) -------
+@njit(cache=True, nogil=True)
+def _median_diff(col, a, b, u, buf):
+    # median of the per-row changes of col[:, u] over rows [a, b] (0.0 with fewer than two rows)
+    n = 0
+    for v in range(a, b):
+        buf[n] = col[v + 1, u] - col[v, u]
+        n += 1
+    if n == 0:
+        return 0.0
+    return _median_sorted(buf, n)
+
+
+@njit(cache=True, nogil=True)
+def _sandwiched(column, u, ga, a0, a1, gr, r0, r1, gb, b0, period, max_rows, gap_rows, tol_px, line_px, buf):
+    # the test of sandwich_guard on column u's runs A = [a0, a1] (region ga), R = [r0, r1] (gr) and
+    # B from row b0 (gb)
+    if gr == ga or gr == gb or r1 - r0 + 1 > max_rows:
+        return False
+    ga_rows = r0 - a1
+    gb_rows = b0 - r1
+    if ga_rows > gap_rows or gb_rows > gap_rows:
+        return False
+    ca = column[a1, u]
+    cr1 = column[r0, u]
+    cr2 = column[r1, u]
+    cb = column[b0, u]
+    sa = _median_diff(column, max(a0, a1 - 4), a1, u, buf)
+    pa = ca + sa * ga_rows
+    k = np.round((cr1 - pa) / period)
+    if k == 0 or abs(cr1 - pa - k * period) >= tol_px:
+        return False
+    sr = _median_diff(column, r0, r1, u, buf)
+    if abs(cb - (cr2 + sr * gb_rows) + k * period) >= tol_px:
+        return False
+    span = b0 - a1
+    if abs(cb - (ca + sa * span)) >= tol_px + 0.05 * span:
+        return False
+    for w in range(r0, r1 + 1):
+        if not abs(column[w, u] - k * period - (ca + (cb - ca) * (w - a1) / span)) < line_px:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def sandwich_guard(mask, column, stripe, conf, region, period, max_rows, gap_rows, tol_px, line_px, ok_code,
+                   code):
+    """Mask ``code`` the short runs of one region along a column that the surface around them, in
+    other regions, continues to the sub-pixel a whole number of periods away: a strip of a far
+    surface welded along its rows into a near one's region across a silhouette, where their stripes
+    line up.
+
+    mask (H, W) uint8, column (H, W) float32 absolute projector columns (px), stripe (H, W) int32,
+    conf (H, W) float32: updated in place; region (H, W) int32.  Along each column the reported
+    pixels form runs of one region; a run ``R`` of at most ``max_rows`` rows whose neighbour runs
+    ``A`` above and ``B`` below (at most ``gap_rows`` rows away) are of other regions is masked when
+    ``A``'s columns carried on at its slope (the median change of its last 5 rows) reach ``R``'s
+    first row ``k`` periods off (``k`` != 0) within ``tol_px``, ``R``'s carried on at its own slope
+    reach ``B``'s first row ``-k`` periods off within ``tol_px``, ``A`` carried on reaches ``B``
+    within ``tol_px`` + 0.05 px a row (one surface behind), and every row of ``R``, ``k`` periods
+    back, lies within ``line_px`` of the straight line from ``A``'s last row to ``B``'s first (it is
+    that surface).  Returns how many pixels it masked.
+    """
+    H, W = mask.shape
+    uok = np.uint8(ok_code)
+    ucode = np.uint8(code)
+    # row by row (the maps are row-major), each column's state: its current run (in_run, its
+    # region and first row) and the last two runs it completed (A above R); a run starting in a
+    # column with two completed runs is the B of their triple.  Hits are applied at the end, so
+    # every triple sees the columns as they came in
+    in_run = np.zeros(W, np.uint8)
+    cur_g = np.zeros(W, np.int32)
+    cur_s = np.zeros(W, np.int64)
+    nh = np.zeros(W, np.int64)
+    ag = np.zeros(W, np.int32)
+    a0 = np.zeros(W, np.int64)
+    a1 = np.zeros(W, np.int64)
+    rgn = np.zeros(W, np.int32)
+    r0 = np.zeros(W, np.int64)
+    r1 = np.zeros(W, np.int64)
+    hit_u = np.empty(16, np.int64)
+    hit_a = np.empty(16, np.int64)
+    hit_b = np.empty(16, np.int64)
+    nhit = 0
+    buf = np.empty(max(H, 8), np.float64)
+    # the columns with three runs or more (a byte-wide pass the compiler vectorises): only they
+    # can hold a triple
+    starts = np.zeros(W, np.int32)
+    for u in range(W):
+        starts[u] = 1 if mask[0, u] == uok else 0
+    for v in range(1, H):
+        for u in range(W):
+            starts[u] += (mask[v, u] == uok) & ((mask[v - 1, u] != uok) | (region[v, u] != region[v - 1, u]))
+    cand = np.empty(W, np.int64)
+    nc = 0
+    for u in range(W):
+        if starts[u] >= 3:
+            cand[nc] = u
+            nc += 1
+    for v in range(H + 1):
+        for q in range(nc):
+            u = cand[q]
+            ok = v < H and mask[v, u] == uok
+            g = region[v, u] if ok else -1
+            if in_run[u] != 0:
+                if ok and g == cur_g[u]:
+                    continue
+                # the current run ends at v - 1: it becomes R, R becomes A
+                ag[u], a0[u], a1[u] = rgn[u], r0[u], r1[u]
+                rgn[u], r0[u], r1[u] = cur_g[u], cur_s[u], v - 1
+                nh[u] = min(nh[u] + 1, 2)
+                in_run[u] = 0
+            if not ok:
+                continue
+            if nh[u] == 2 and _sandwiched(column, u, ag[u], a0[u], a1[u], rgn[u], r0[u], r1[u], g, v, period,
+                                          max_rows, gap_rows, tol_px, line_px, buf):
+                if nhit == hit_u.shape[0]:
+                    hit_u = np.concatenate((hit_u, np.empty(nhit, np.int64)))
+                    hit_a = np.concatenate((hit_a, np.empty(nhit, np.int64)))
+                    hit_b = np.concatenate((hit_b, np.empty(nhit, np.int64)))
+                hit_u[nhit], hit_a[nhit], hit_b[nhit] = u, r0[u], r1[u]
+                nhit += 1
+            in_run[u] = 1
+            cur_g[u] = g
+            cur_s[u] = v
+    total = 0
+    for h in range(nhit):
+        total += _unreport_rows(mask, column, stripe, conf, hit_u[h], hit_a[h], hit_b[h], uok, ucode)
+    return total
