@@ -2658,7 +2658,7 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
                         bool(params.rim_guard_no_boundary), img, float(params.rim_end_dim_ratio),
                         float(params.camera_gamma), guard_lit_rows(params))
     n_step = step_guard(img, mask, column, stripe, conf, region, params, counts)
-    sandwich_guard(mask, column, stripe, conf, region, pattern, params, counts)
+    n_sandwich = sandwich_guard(mask, column, stripe, conf, region, pattern, params, counts)
     _unreported(counts, int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED)), ISOLATED)
     sigma = None
     floor = None
@@ -2696,6 +2696,7 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
     stats["regions_peeled"], stats["peeled_px"] = int(np.count_nonzero(peeled)), int(peeled.sum())
     # of the "rim" pixels: masked by the guard rows (rim_guard) and by the brightness-step guard
     stats["rim_guard_px"], stats["rim_step_px"] = int(n_guard), int(n_step)
+    stats["sandwich_px"] = int(n_sandwich)
     stats["transitions_joined"] = int(joined.size)
     if ca is not None:
         stats["lateral_ca"] = dict(ca)

@@ -2274,6 +2274,7 @@ def _rule_fixes_weld(what: str, r, off: DecodeParams, wrong_before: int, max_los
     assert wrong0 >= wrong_before and wrong == 0
     assert not only_masks or not (sm.valid & ~sm0.valid).any()
     assert (sm0.valid & ~sm.valid).sum() < max_lost * sm0.valid.sum()
+    return sm, sm0
 
 
 @pytest.mark.slow
@@ -2607,8 +2608,9 @@ def test_wall_strip_welded_into_a_box_between_two_wall_regions_is_masked(albedo,
     sandwich_rows`` masks it, none left."""
     r = sim.render(sim.paper_rig(), sim.scenes.multi_object(565.0, wall_mm=565.0 * 1.25, albedo=albedo),
                    render_pattern(PatternSpec()), "typical", seed=4)
-    _rule_fixes_weld(f"multi-object at 565 mm, wall 706 mm, albedo {albedo}", r, DecodeParams(sandwich_rows=0),
-                     wrong_off, 0.003)
+    sm, sm0 = _rule_fixes_weld(f"multi-object at 565 mm, wall 706 mm, albedo {albedo}", r,
+                               DecodeParams(sandwich_rows=0), wrong_off, 0.003)
+    assert sm.stats["sandwich_px"] == (sm0.valid & ~sm.valid).sum() > wrong_off and sm0.stats["sandwich_px"] == 0
 
 
 def test_step_guard_brightness_is_the_clipped_row_mean_of_green_plus_blue():

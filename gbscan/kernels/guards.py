@@ -1110,14 +1110,14 @@ def tilt_follow_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, 
 
     A pass down the frame (then one up): at each parting of row ``v - 1`` with none within
     ``break_px`` in row ``v`` (the line ends there), whose line runs on upwards for at least
-    ``line_rows`` rows (each row's parting within ``break_px + 1`` px of the last one's; junction
-    positions step by a third of a stripe), the line is carried on one row at its slant over those
-    rows.  Of row ``v``'s junctions within ``break_px + 2`` px of there, with ``min_n`` junctions either
+    ``line_rows`` rows (each row's parting within ``break_px + 1`` px of the last one's: the cuts
+    sit on junctions, 3-4 px apart), the line is carried on one row at its slant over those rows.
+    Of row ``v``'s junctions within ``break_px + 2`` px of there, with ``min_n`` junctions either
     side in their segment, whose tilt steps by :func:`tilt_step_cuts`' test, the one whose two
-    neighbours' tilts differ most (the seam lies between them: near a slanted seam the boundaries'
-    tracks cross it, so the test passes over several junctions) is cut, and parts row ``v`` for the
-    next: a welded run of rows is followed while the tilt steps.  Returns (n_j,) uint8, the
-    junctions this adds.
+    neighbours' tilts differ most (the seam lies between them: near a slanted seam the
+    boundaries' tracks cross it, so the test passes over several junctions) is cut, and parts row
+    ``v`` for the next: a welded run of rows is followed while the tilt steps.  Returns (n_j,)
+    uint8, the junctions this adds.
     """
     nj = j_x.shape[0]
     out = np.zeros(nj, np.uint8)
@@ -1273,6 +1273,8 @@ def sandwich_guard(mask, column, stripe, conf, region, period, max_rows, gap_row
     that surface).  Returns how many pixels it masked.
     """
     H, W = mask.shape
+    if H == 0 or W == 0:
+        return 0
     uok = np.uint8(ok_code)
     ucode = np.uint8(code)
     # row by row (the maps are row-major), each column's state: its current run (in_run, its
