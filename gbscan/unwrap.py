@@ -367,9 +367,10 @@ class UnwrapParams:
         (:func:`gbscan.kernels.tilt_follow_cuts`, 0 disables).  The test above asks for
         ``tilt_break_min`` rows parted within 3 px of a junction's column; a silhouette slanting
         by 1-3 px a row leaves that column within a few rows, and where its last rows are welded
-        only one side of them is parted.  So where a line of partings (segment ends and the cuts
-        above) at least ``tilt_follow_rows`` rows long, each row's within 4 px of the last one's,
-        ends above (below) a welded row, the line is carried on into that row at its slant; of
+        only one side of them is parted.  So where a line of partings (segment ends, the spacing
+        and bridge cuts, and the cuts above) at least ``tilt_follow_rows`` rows long, each row's
+        within 4 px of the last one's, ends above (below) a welded row, the line is carried on
+        into that row at its slant; of
         the junctions within 5 px of there whose tilt steps by the test above, the one whose two
         neighbours' tilts differ most is cut, and parts its row for the next: a welded run of
         rows is followed while the tilt steps.  The case: the held-out set's small sphere at 710

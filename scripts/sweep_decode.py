@@ -87,12 +87,8 @@ def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str,
         return _panel_set(S, quick)
     if which == "layouts":
         return _layout_set(S, quick)
-    if which == "holdout":
-        return _holdout_set(S, quick)
-    if which == "holdout2":
-        return _multi_grid(S, "holdout2", HOLDOUT2_DEPTHS_MM, HOLDOUT2_WALLS, 0.65, (4, 5), 0.45, quick)
-    if which == "holdout3":
-        return _multi_grid(S, "holdout3", HOLDOUT3_DEPTHS_MM, HOLDOUT3_WALLS, 0.5, (6, 7), 0.55, quick)
+    if which in HELD_OUT:
+        return _multi_grid(S, which, *HELD_OUT[which], quick)
     if which != "main":
         raise ValueError(f"unknown frame set {which!r}, expected one of {SETS}")
     out = []
@@ -239,18 +235,13 @@ def _layout_set(S, quick: bool) -> list:
     return _multi_grid(S, "multi", LAYOUT_DEPTHS_MM, LAYOUT_WALLS, 0.4, (0, 1), 0.6, quick)
 
 
-#: the ``holdout`` set's depths (mm) and walls (times the depth): none of the other sets'
+#: the ``holdout`` set's depths (mm) and walls (times the depth): none of the other sets'.  Frames
+#: kept out of the rules' making (twenty-ninth session): objects of the scene's albedo or 0.55, the
+#: panel patched (seed 2) or plain (0.5, seed 3): 32 frames.  Run to check that a rule found on the
+#: other sets holds; a rule made from one of these frames spends the set (say so in docs/history.md
+#: and make another: spent in the thirtieth session by ``UnwrapParams.tilt_follow_rows``)
 HOLDOUT_DEPTHS_MM = (590.0, 710.0, 770.0, 830.0)
 HOLDOUT_WALLS = (1.3, 1.46)
-
-
-def _holdout_set(S, quick: bool) -> list:
-    # frames kept out of the rules' making (twenty-ninth session): the multi-object scene at four
-    # depths none of the other sets uses, its wall at 1.3 / 1.46 x the depth, objects of the
-    # scene's albedo or 0.55, the panel patched (seed 2) or plain (0.5, seed 3): 32 frames.  Run
-    # to check that a rule found on the other sets holds; a rule made from one of these frames
-    # spends the set (say so in docs/history.md and make another)
-    return _multi_grid(S, "holdout", HOLDOUT_DEPTHS_MM, HOLDOUT_WALLS, 0.55, (2, 3), 0.5, quick)
 
 
 #: the ``holdout2`` set's depths (mm) and walls (times the depth), made in the thirtieth session
@@ -266,6 +257,12 @@ HOLDOUT2_WALLS = (1.25, 1.52)
 #: the panel patched (seed 6) or plain (0.55, seed 7)
 HOLDOUT3_DEPTHS_MM = (635.0, 725.0, 815.0, 875.0)
 HOLDOUT3_WALLS = (1.35, 1.6)
+
+#: the held-out sets: ``_multi_grid``'s depths, walls, albedo, seeds (patched, plain) and plain
+#: panel albedo for each
+HELD_OUT = {"holdout": (HOLDOUT_DEPTHS_MM, HOLDOUT_WALLS, 0.55, (2, 3), 0.5),
+            "holdout2": (HOLDOUT2_DEPTHS_MM, HOLDOUT2_WALLS, 0.65, (4, 5), 0.45),
+            "holdout3": (HOLDOUT3_DEPTHS_MM, HOLDOUT3_WALLS, 0.5, (6, 7), 0.55)}
 
 
 def _mirrored_set(S, quick: bool) -> list:

@@ -1125,16 +1125,20 @@ def tilt_follow_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, 
         return out
     ends = np.zeros((H, W), np.uint8)      # the partings: segment ends (not the frame's sides) and cuts
     ns = seg_row.shape[0]
+    part = np.full((ns, 2), -1, np.int64)  # each segment's partings at its start and its end (-1 none)
     for s in range(ns):
         # a parting: the middle of the gap to the next segment of the row when it is near, else
         # each end that is not the frame's side
         v = seg_row[s]
         if 0 < seg_u0[s] and (s == 0 or seg_row[s - 1] != v or seg_u0[s] - seg_u1[s - 1] > 2 * break_px + 1):
-            ends[v, seg_u0[s]] = 1
+            part[s, 0] = seg_u0[s]
         if s + 1 < ns and seg_row[s + 1] == v and seg_u0[s + 1] - seg_u1[s] <= 2 * break_px + 1:
-            ends[v, (seg_u1[s] + seg_u0[s + 1]) // 2] = 1
+            part[s, 1] = (seg_u1[s] + seg_u0[s + 1]) // 2
         elif seg_u1[s] < W - 1:
-            ends[v, seg_u1[s]] = 1
+            part[s, 1] = seg_u1[s]
+        for e in part[s]:
+            if e >= 0:
+                ends[v, e] = 1
     for j in range(nj):
         if cut[j] != 0 or (pre.shape[0] != 0 and pre[j] != 0):
             ends[seg_row[j_seg[j]], j_ua[j]] = 1
@@ -1144,7 +1148,7 @@ def tilt_follow_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, 
         sstart[seg_row[t] + 1] += 1
     for v in range(H):
         sstart[v + 1] += sstart[v]
-    cols = np.empty(4 * W + 8, np.int64)   # one row's partings (segment ends, gaps' middles, cuts)
+    cols = np.empty(W + 2 * ns + 8, np.int64)   # one row's partings (segment ends, gaps' middles, cuts)
     flagged = np.zeros(H, np.int64)        # each row's junctions cut (by either kernel or this one)
     for j in range(nj):
         if cut[j] != 0 or (pre.shape[0] != 0 and pre[j] != 0):
@@ -1159,14 +1163,13 @@ def tilt_follow_cuts(j_x, j_seg, seg_row, seg_u0, seg_u1, seg_j0, seg_j1, j_ua, 
                 r = v - d
                 m = 0
                 for t in range(sstart[r], sstart[r + 1]):
-                    for e in (np.int64(seg_u0[t]), np.int64((seg_u1[t] + seg_u0[min(t + 1, ns - 1)]) // 2),
-                              np.int64(seg_u1[t])):
-                        if 0 <= e < W and ends[r, e] != 0 and m < cols.shape[0]:
+                    for e in part[t]:
+                        if e >= 0:
                             cols[m] = e
                             m += 1
                 if flagged[r] != 0:
                     for j in range(start[r], start[r + 1]):
-                        if (cut[j] != 0 or out[j] != 0 or (pre.shape[0] != 0 and pre[j] != 0)) and m < cols.shape[0]:
+                        if cut[j] != 0 or out[j] != 0 or (pre.shape[0] != 0 and pre[j] != 0):
                             cols[m] = j_ua[j]
                             m += 1
                 _sort_few(cols, m)   # (a handful a row)
