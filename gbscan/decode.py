@@ -459,6 +459,24 @@ class DecodeParams:
         with the box's 14 stripes on, and 14 rows of a wall strip are welded along their rows into
         the box's region (its 6 markers fit, none of the strip's), between two regions of the wall
         that the strip continues above and below: 217 and 194 pixels 14 stripes off.
+    piece_check_px : a piece of an indexed region that the masks leave apart from its body (its
+        largest 8-connected piece of reported pixels) is masked "unindexed" when at least this many
+        of its pixels contradict their stripe (cyan on a plain stripe, green or blue on a marker
+        stripe) and another index of the piece leaves at least this many fewer contradicting (0:
+        never).  See :func:`piece_check`.  The case (the third held-out set, ``--set holdout3``,
+        thirty-first session): the multi-object scene at 875 mm with its wall at 1 400 mm, which
+        is dim; islands of the wall above the big sphere were unwrapped into the sphere's region
+        through rows the guards then masked, and took its index: 24 stripes off, 3-30 cyan pixels
+        each on plain stripes.  Over the ten sweep sets' 335 frames no piece that is right has
+        more than one such pixel.
+    piece_alone : such a piece that no reported pixel outside every piece continues (the
+        linking's column-continuity votes) is masked "unindexed" too unless its own colours
+        favour its index over every other by ``unwrap.min_marker_px`` pixels.  See
+        :func:`piece_check`.  Found on the third and fourth held-out sets (thirty-first session):
+        of the pieces of the eleven sweep sets' 367 frames that nothing continues, every wrong
+        one (3 543 pixels: a wall strip 12 stripes off welded to a sphere at 890 mm, 2 407) and
+        17 051 right pixels (0.04 % of the 39.5 M reported); of the pieces something continues,
+        59 wrong pixels and 189 457 right.
     resample : decode the frame shrunk by this factor (the linear mean over each pixel's area, as a
         camera with larger pixels sees it; ``cv2.INTER_AREA``) and expand the result back to every
         pixel (:func:`decode`).  0, the default: frames whose stripes span more than
@@ -578,6 +596,8 @@ class DecodeParams:
     join_transitions: bool = True
     step_guard_ratio: float = 1.9
     sandwich_rows: int = 32
+    piece_check_px: int = 3
+    piece_alone: bool = True
     resample: float = 0.0
     confidence_spread_px: float = 0.15
     crop: bool = True
@@ -651,6 +671,11 @@ class DecodeParams:
         if isinstance(self.sandwich_rows, bool) or int(self.sandwich_rows) != self.sandwich_rows \
                 or int(self.sandwich_rows) < 0:
             bad("sandwich_rows", f"must be a whole number of rows >= 0 (0 disables), got {self.sandwich_rows!r}")
+        if isinstance(self.piece_check_px, bool) or int(self.piece_check_px) != self.piece_check_px \
+                or int(self.piece_check_px) < 0:
+            bad("piece_check_px", f"must be a whole number of pixels >= 0 (0 disables), got {self.piece_check_px!r}")
+        if not isinstance(self.piece_alone, (bool, np.bool_)):
+            bad("piece_alone", f"must be true or false, got {self.piece_alone!r}")
         if not (float(self.rim_bias_px) >= 0) or int(self.rim_end_px) < 0:
             bad("rim_bias_px/rim_end_px", "must be >= 0 (0 disables the rule)")
         dr = self.rim_end_dim_ratio
@@ -1805,6 +1830,50 @@ def sandwich_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, con
     return n
 
 
+def piece_check(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confidence: np.ndarray,
+                labels: np.ndarray, region: np.ndarray, pattern: PatternSpec, params: DecodeParams,
+                counts: np.ndarray | None = None, n_regions: int | None = None) -> tuple[int, int]:
+    """Mask ``UNINDEXED`` the pieces of a region cut off from its body whose index nothing but
+    the body supports; returns their counts (by their own markers, for nothing continuing them).
+
+    mask (H, W) uint8, column (H, W) float32, stripe (H, W) int32, confidence (H, W) float32:
+    updated in place (NaN / -1 / 0 where masked), as is ``counts`` (n_codes,) when given; labels
+    (H, W) uint8 colour classes, region (H, W) int32 (ids below ``n_regions``, found when None).
+
+    Why: a region is indexed as a whole, through every pixel the unwrapping joined into it.  The
+    rules after it mask some of those pixels (the rim rules, the guards), and where they were
+    all that joined a piece of the region to the rest, the piece kept an index it owes to pixels
+    the decoder itself rejected.  A piece must then earn its index as a region too small for its
+    own does (:func:`gbscan.unwrap.link_components`): by its own markers, or by the columns of
+    the reported pixels around it continuing its own.  Two tests, each dropping the piece rather
+    than guessing (:func:`gbscan.kernels.piece_check`):
+
+    * its own colours contradict the index -- at least ``params.piece_check_px`` of its pixels
+      cyan on a plain stripe or green or blue on a marker stripe -- and another index fits them
+      better by as many: a piece of another surface welded on, its markers showing;
+    * (``params.piece_alone``) no reported pixel outside every piece continues it (the linking's
+      column-continuity votes: two pixels in line above or below one of its pixels, or beside a
+      row end past at most ``link_gap_px`` unreported pixels) and its own colours do not favour
+      its index over every other by ``min_marker_px`` pixels, one marker's worth: an island
+      whose index is the body's word alone.
+    """
+    min_px = int(params.piece_check_px)
+    fix_px = int(params.unwrap.min_marker_px) if params.piece_alone else 0
+    if (min_px <= 0 and fix_px <= 0) or not pattern.markers or mask.size == 0:
+        return 0, 0
+    from . import kernels
+
+    region = np.ascontiguousarray(region, dtype=np.int32)
+    n_reg = int(region.max()) + 1 if n_regions is None else int(n_regions)
+    if n_reg <= 0:
+        return 0, 0
+    n_a, n_b = kernels.piece_check(mask, column, stripe, confidence, np.ascontiguousarray(labels, dtype=np.uint8),
+                                   region, np.ascontiguousarray(pattern.is_marker(), dtype=np.bool_), n_reg, min_px,
+                                   fix_px, int(params.unwrap.link_gap_px), OK, UNINDEXED)
+    _unreported(counts, int(n_a) + int(n_b), UNINDEXED)
+    return int(n_a), int(n_b)
+
+
 def _mark_spans(reason: np.ndarray, spans: np.ndarray, code: int) -> None:
     """Set ``code`` on the still-OK pixels of row spans ``(v, u_first, u_last)`` (n, 3) of
     ``reason`` (H, W) uint8, in place (finish_pixels keeps any non-zero input reason)."""
@@ -2659,6 +2728,7 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
                         float(params.camera_gamma), guard_lit_rows(params))
     n_step = step_guard(img, mask, column, stripe, conf, region, params, counts)
     n_sandwich = sandwich_guard(mask, column, stripe, conf, region, pattern, params, counts)
+    n_piece, n_alone = piece_check(mask, column, stripe, conf, cls.labels, region, pattern, params, counts, n_reg)
     _unreported(counts, int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED)), ISOLATED)
     sigma = None
     floor = None
@@ -2697,6 +2767,8 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
     # of the "rim" pixels: masked by the guard rows (rim_guard) and by the brightness-step guard
     stats["rim_guard_px"], stats["rim_step_px"] = int(n_guard), int(n_step)
     stats["sandwich_px"] = int(n_sandwich)
+    # pieces cut off from their region's body: by their own markers, for nothing continuing them
+    stats["piece_px"], stats["piece_alone_px"] = int(n_piece), int(n_alone)
     stats["transitions_joined"] = int(joined.size)
     if ca is not None:
         stats["lateral_ca"] = dict(ca)

@@ -39,7 +39,9 @@ depth edges when there are any).
     python scripts/sweep_decode.py --cache DIR --set layouts --out DIR   # and pictures of the wrong pixels
     python scripts/sweep_decode.py --cache DIR --set holdout      # frames kept out of the rules (32; one rule since)
     python scripts/sweep_decode.py --cache DIR --set holdout2     # 32 frames more (one rule since)
-    python scripts/sweep_decode.py --cache DIR --set holdout3     # 32 frames more, no rule made from them
+    python scripts/sweep_decode.py --cache DIR --set holdout3     # 32 frames more (two rules since)
+    python scripts/sweep_decode.py --cache DIR --set holdout4     # 32 frames more (one rule since)
+    python scripts/sweep_decode.py --cache DIR --set holdout5     # 32 frames more, no rule made from them
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
 wrong non-edge pixels under it (all wrong regions with ``--edges``), and a total.  Progress lines go to stderr.  Renders are cached in ``--cache`` (npz).
@@ -61,10 +63,10 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 
 #: the frame sets of ``--set``: the sweep's 48 scenes, the same objects under room light, the clean
 #: preset, other baselines, the rig mirrored, the multi-object scene's panel plain, other layouts of
-#: it, and three sets of frames of it kept out of the rules' making (the first two each spent by a
-#: rule of the thirtieth session)
+#: it, and five sets of frames of it kept out of the rules' making (the first two each spent by a
+#: rule of the thirtieth session, the third and fourth by the thirty-first session's piece rules)
 SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels", "layouts", "holdout", "holdout2",
-        "holdout3")
+        "holdout3", "holdout4", "holdout5")
 
 
 def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str, int, int, object]]:
@@ -254,15 +256,32 @@ HOLDOUT2_WALLS = (1.25, 1.52)
 
 #: the ``holdout3`` set's (thirtieth session, when a rule, ``DecodeParams.sandwich_rows``, was made
 #: from a ``holdout2`` frame): other depths and walls again, objects of the scene's albedo or 0.5,
-#: the panel patched (seed 6) or plain (0.55, seed 7)
+#: the panel patched (seed 6) or plain (0.55, seed 7).  Spent in the thirty-first session by
+#: ``DecodeParams.piece_check_px`` and ``piece_alone``, made from its 875 mm / 1 400 mm islands
 HOLDOUT3_DEPTHS_MM = (635.0, 725.0, 815.0, 875.0)
 HOLDOUT3_WALLS = (1.35, 1.6)
+
+#: the ``holdout4`` set's (thirty-first session, made before the piece check,
+#: ``DecodeParams.piece_check_px``, found on ``holdout3`` frames, was run on it): other depths and
+#: walls again, objects of the scene's albedo or 0.6, the panel patched (seed 8) or plain (0.5,
+#: seed 9).  Spent the same session by ``DecodeParams.piece_alone``, made from its pieces
+HOLDOUT4_DEPTHS_MM = (605.0, 745.0, 820.0, 890.0)
+HOLDOUT4_WALLS = (1.33, 1.56)
+
+#: the ``holdout5`` set's (thirty-first session, made before the isolated-piece rule,
+#: ``DecodeParams.piece_alone``, found on ``holdout3`` and ``holdout4`` frames, was run on it):
+#: other depths and walls again, objects of the scene's albedo or 0.45, the panel patched
+#: (seed 10) or plain (0.6, seed 11)
+HOLDOUT5_DEPTHS_MM = (615.0, 755.0, 845.0, 905.0)
+HOLDOUT5_WALLS = (1.4, 1.65)
 
 #: the held-out sets: ``_multi_grid``'s depths, walls, albedo, seeds (patched, plain) and plain
 #: panel albedo for each
 HELD_OUT = {"holdout": (HOLDOUT_DEPTHS_MM, HOLDOUT_WALLS, 0.55, (2, 3), 0.5),
             "holdout2": (HOLDOUT2_DEPTHS_MM, HOLDOUT2_WALLS, 0.65, (4, 5), 0.45),
-            "holdout3": (HOLDOUT3_DEPTHS_MM, HOLDOUT3_WALLS, 0.5, (6, 7), 0.55)}
+            "holdout3": (HOLDOUT3_DEPTHS_MM, HOLDOUT3_WALLS, 0.5, (6, 7), 0.55),
+            "holdout4": (HOLDOUT4_DEPTHS_MM, HOLDOUT4_WALLS, 0.6, (8, 9), 0.5),
+            "holdout5": (HOLDOUT5_DEPTHS_MM, HOLDOUT5_WALLS, 0.45, (10, 11), 0.6)}
 
 
 def _mirrored_set(S, quick: bool) -> list:
@@ -540,7 +559,8 @@ def main(argv=None) -> int:
                          "of the multi-object scene kept out of the rules' making: check a rule on them, do not "
                          "tune on them; one rule was made from them in the thirtieth session), holdout2, holdout3 "
                          "(32 frames more each, at other depths, walls and albedos, made then; one rule was made "
-                         "from holdout2)")
+                         "from each since), holdout4, holdout5 (32 more each, made in the thirty-first session; "
+                         "one rule was made from holdout4)")
     ap.add_argument("--edges", action="store_true", help="also list regions wrong only on depth-edge pixels")
     ap.add_argument("--out", help="folder for a picture of each scene with pixels on wrong stripes (created)")
     ap.add_argument("--unwrap", action="append", default=[], metavar="NAME=VALUE",

@@ -138,13 +138,14 @@ def test_wide_stripes_are_decoded_shrunk(wide):
     (the multi-object scene, seed 0: 77.1 % reported, 67.1 % before misfit regions were split at
     a contact row, ``UnwrapParams.split_rows``, against 80.5 % shrunk) and, without the confirmed
     marker bound of its row check (``UnwrapParams.conflict_confirm``, which now rejects them, as
-    does ``conflict_extend`` alone), put 97 pixels on wrong stripes; shrunk to the validated width it reports more of the scene and
-    none wrong, at every pixel of the frame."""
+    does ``conflict_extend`` alone, and without the piece rules, ``piece_check_px`` and
+    ``piece_alone``, which mask most of them too), put 97 pixels on wrong stripes; shrunk to the
+    validated width it reports more of the scene and none wrong, at every pixel of the frame."""
     from gbscan.unwrap import UnwrapParams
 
     auto = decode(wide.image, SPEC)
-    never = decode(wide.image, SPEC, DecodeParams(resample=1.0, unwrap=UnwrapParams(conflict_confirm=False,
-                                                                            conflict_extend=False)))
+    never = decode(wide.image, SPEC, DecodeParams(resample=1.0, piece_check_px=0, piece_alone=False,
+                                                  unwrap=UnwrapParams(conflict_confirm=False, conflict_extend=False)))
     assert scores(decode(wide.image, SPEC, DecodeParams(resample=1.0)), wide)[1] == 0
     assert auto.column.shape == wide.image.shape[:2]
     assert 1.8 < auto.stats["resample"] < 2.3 and auto.stats["decoded_size"] == list(

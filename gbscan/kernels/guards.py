@@ -1343,3 +1343,259 @@ def sandwich_guard(mask, column, stripe, conf, region, period, max_rows, gap_row
     for h in range(nhit):
         total += _unreport_rows(mask, column, stripe, conf, hit_u[h], hit_a[h], hit_b[h], uok, ucode)
     return total
+
+
+# -- decoder: pieces of a region cut off from its body (gbscan.decode.piece_check) ------------------
+
+@njit(cache=True, nogil=True)
+def _contradicts(lab, marker):
+    # a reported pixel's colour against its stripe: cyan on a plain stripe, green or blue on a marker
+    return (lab == 3 and not marker) or ((lab == 1 or lab == 2) and marker)
+
+
+@njit(cache=True, nogil=True)
+def _find(parent, a):
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@njit(cache=True, nogil=True)
+def _piece_runs(mask, region, ok_code, n_regions):
+    # the reported pixels' runs of one region along each row: (row, u0, u1, region) per run (row
+    # order) and row_start (H + 1,) into them.  Per row a branch-free pass writes each pixel's key
+    # (its region where reported, else -1; padded by -1 both sides), then the runs are read off
+    # it (0.13 against 0.18 ms a 640x480 plane reading the maps directly).  Sized for the most
+    # runs a row can hold (untouched pages cost nothing): arrays grown inside the loop made numba
+    # count references at every pixel (5.4 ms)
+    H, W = mask.shape
+    cap = H * ((W + 1) // 2) + 1
+    rr = np.empty(cap, np.int32)
+    r0 = np.empty(cap, np.int32)
+    r1 = np.empty(cap, np.int32)
+    rg = np.empty(cap, np.int32)
+    row_start = np.empty(H + 1, np.int64)
+    key = np.empty(W + 2, np.int32)
+    key[0] = -1
+    key[W + 1] = -1
+    n = 0
+    for v in range(H):
+        row_start[v] = n
+        mrow = mask[v]
+        grow = region[v]
+        cnt = 0
+        for u in range(W):
+            g = grow[u]
+            ok = (mrow[u] == ok_code) & (g >= 0) & (g < n_regions)
+            key[u + 1] = g if ok else np.int32(-1)
+            cnt += ok
+        if cnt == 0:
+            continue
+        u = 1
+        while u <= W:
+            k = key[u]
+            if k < 0:
+                u += 1
+                continue
+            a = u
+            while key[u + 1] == k:
+                u += 1
+            rr[n] = v
+            r0[n] = a - 1
+            r1[n] = u - 1
+            rg[n] = k
+            n += 1
+            u += 1
+    row_start[H] = n
+    return rr[:n], r0[:n], r1[:n], rg[:n], row_start
+
+
+@njit(cache=True, nogil=True)
+def _has_vote(cls, v, a, b, max_gap_px):
+    # whether a reported pixel outside every piece (cls 1) continues the piece run (v, a .. b) as
+    # kernels.link_votes reads continuity: two such pixels in line above or below one of its
+    # pixels (rows v -+ 1, v -+ 2), or along the row past at most max_gap_px unreported pixels
+    # beyond either end (the nearest such pixel q and q + 2 outward)
+    H, W = cls.shape
+    for u in range(a, b + 1):
+        for d in (-1, 1):
+            q, q2 = v + d, v + 2 * d
+            if 0 <= q2 < H and cls[q, u] == 1 and cls[q2, u] == 1:
+                return True
+    for d in (-1, 1):
+        u = a if d < 0 else b
+        for k in range(1, max_gap_px + 2):
+            q = u + d * k
+            if q < 0 or q >= W or cls[v, q] == 2:
+                break
+            if cls[v, q] == 1:
+                q2 = q + 2 * d
+                if 0 <= q2 < W and cls[v, q2] == 1:
+                    return True
+                break
+    return False
+
+
+@njit(cache=True, nogil=True)
+def piece_check(mask, column, stripe, conf, labels, region, is_marker, n_regions, min_px, alone_fix_px, max_gap_px,
+                ok_code, code):
+    """Mask ``code`` the pieces of a region that its reported pixels leave apart from its body
+    and whose index nothing but the region's other pixels supports.
+
+    mask (H, W) uint8, column (H, W) float32, stripe (H, W) int32 absolute stripe, conf (H, W)
+    float32: updated in place (NaN / -1 / 0 where masked); labels (H, W) uint8 colour classes;
+    region (H, W) int32; is_marker (n_stripes,) bool, the pattern's marker stripes; n_regions:
+    more than the largest region id.  A region's reported pixels form 8-connected *pieces*; the
+    largest is its body (of two as large, the first in row order).  A reported pixel
+    *contradicts* its stripe when it is cyan on a plain stripe or green / blue on a marker
+    stripe; a piece's *margin* is how many fewer of its pixels contradict their stripes at its
+    index than at the best other (every even shift of its stripes that keeps them within 2 of
+    the pattern; a pixel beyond the pattern contradicts).  A piece other than the body is masked
+    when (a) ``min_px`` > 0, at least ``min_px`` of its pixels contradict and its margin is at
+    most ``-min_px`` (another index fits it better), or (b) ``alone_fix_px`` > 0, no reported
+    pixel outside every piece continues it (:func:`_has_vote`, the column-continuity votes of
+    :func:`gbscan.kernels.link_votes` with ``max_gap_px``) and its margin is under
+    ``alone_fix_px`` (its own markers do not fix its index).  Returns (masked by (a), by (b)).
+    """
+    H, W = mask.shape
+    if H == 0 or W == 0 or n_regions <= 0 or (min_px <= 0 and alone_fix_px <= 0):
+        return 0, 0
+    n_st = is_marker.shape[0]
+    uok = np.uint8(ok_code)
+    rr, r0, r1, rg, row_start = _piece_runs(mask, region, uok, n_regions)
+    n = rr.shape[0]
+    parent = np.arange(n).astype(np.int64)
+    for v in range(1, H):
+        # runs of rows v - 1 and v of one region that touch (8 neighbours): one piece
+        i = row_start[v - 1]
+        ie = row_start[v]
+        for j in range(row_start[v], row_start[v + 1]):
+            while i < ie and r1[i] + 1 < r0[j]:
+                i += 1
+            k = i
+            while k < ie and r0[k] <= r1[j] + 1:
+                if rg[k] == rg[j]:
+                    a = _find(parent, k)
+                    b = _find(parent, j)
+                    if a != b:
+                        if a < b:
+                            parent[b] = a
+                        else:
+                            parent[a] = b
+                k += 1
+    size = np.zeros(n, np.int64)
+    root = np.empty(n, np.int64)
+    for j in range(n):
+        root[j] = _find(parent, j)
+        size[root[j]] += r1[j] - r0[j] + 1
+    # a root is its piece's first run (unions keep the smaller index): the body of each region
+    # is its largest piece, the first in row order among equals
+    body = np.full(n_regions, -1, np.int64)
+    pieces = 0
+    for j in range(n):
+        if root[j] != j:
+            continue
+        g = rg[j]
+        if body[g] < 0:
+            body[g] = j
+        else:
+            pieces += 1
+            if size[j] > size[body[g]]:
+                body[g] = j
+    if pieces == 0:
+        return 0, 0
+    # pixel classes for the continuity test: 1 reported outside every piece, 2 in a piece
+    cls = np.zeros((H, W), np.uint8)
+    n_piece_runs = 0
+    for j in range(n):
+        piece = root[j] != body[rg[j]]
+        n_piece_runs += piece
+        c = np.uint8(2) if piece else np.uint8(1)
+        for u in range(r0[j], r1[j] + 1):
+            cls[rr[j], u] = c
+    # the piece runs grouped by piece
+    pr = np.empty(n_piece_runs, np.int64)
+    m = 0
+    for j in range(n):
+        if root[j] != body[rg[j]]:
+            pr[m] = j
+            m += 1
+    order = np.argsort(root[pr], kind="mergesort")
+    pr = pr[order]
+    n_a = 0
+    n_b = 0
+    big = np.iinfo(np.int64).max // 4
+    s = 0
+    while s < n_piece_runs:
+        e = s
+        while e < n_piece_runs and root[pr[e]] == root[pr[s]]:
+            e += 1
+        s0 = n_st
+        s1 = -1
+        own = 0
+        for t in range(s, e):
+            j = pr[t]
+            for u in range(r0[j], r1[j] + 1):
+                st = stripe[rr[j], u]
+                s0 = min(s0, st)
+                s1 = max(s1, st)
+                if 0 <= st < n_st and _contradicts(labels[rr[j], u], is_marker[st]):
+                    own += 1
+        contra = min_px > 0 and own >= min_px
+        alone = False
+        if alone_fix_px > 0:
+            alone = True
+            for t in range(s, e):
+                j = pr[t]
+                if _has_vote(cls, rr[j], r0[j], r1[j], max_gap_px):
+                    alone = False
+                    break
+        if (contra or alone) and s1 >= 0:
+            span = s1 - s0 + 1
+            n_c = np.zeros(span, np.int64)    # cyan pixels per stripe of the piece
+            n_p = np.zeros(span, np.int64)    # green / blue pixels per stripe
+            for t in range(s, e):
+                j = pr[t]
+                for u in range(r0[j], r1[j] + 1):
+                    lab = labels[rr[j], u]
+                    if lab == 3:
+                        n_c[stripe[rr[j], u] - s0] += 1
+                    elif lab == 1 or lab == 2:
+                        n_p[stripe[rr[j], u] - s0] += 1
+            best = big
+            # shifts keeping the piece's stripes no further than 2 beyond the pattern's ends (the
+            # indexing's candidates), the colours' parity kept
+            for shift in range(-s1 - 2, n_st + 2 - s0 + 1):
+                if shift == 0 or shift % 2 != 0:
+                    continue
+                mis = 0
+                for jj in range(span):
+                    a = s0 + jj + shift
+                    if a < 0 or a >= n_st:
+                        mis += n_c[jj] + n_p[jj]
+                    elif is_marker[a]:
+                        mis += n_p[jj]
+                    else:
+                        mis += n_c[jj]
+                best = min(best, mis)
+            margin = best - own
+            drop_a = contra and margin <= -min_px
+            drop_b = alone and margin < alone_fix_px
+            if drop_a or drop_b:
+                k = 0
+                for t in range(s, e):
+                    j = pr[t]
+                    v = rr[j]
+                    for u in range(r0[j], r1[j] + 1):
+                        mask[v, u] = np.uint8(code)
+                        column[v, u] = np.nan
+                        stripe[v, u] = -1
+                        conf[v, u] = 0.0
+                        k += 1
+                if drop_a:
+                    n_a += k
+                else:
+                    n_b += k
+        s = e
+    return n_a, n_b
