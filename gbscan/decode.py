@@ -473,10 +473,11 @@ class DecodeParams:
         linking's column-continuity votes) is masked "unindexed" too unless its own colours
         favour its index over every other by ``unwrap.min_marker_px`` pixels.  See
         :func:`piece_check`.  Found on the third and fourth held-out sets (thirty-first session):
-        of the pieces of the eleven sweep sets' 367 frames that nothing continues, every wrong
-        one (3 543 pixels: a wall strip 12 stripes off welded to a sphere at 890 mm, 2 407) and
-        17 051 right pixels (0.04 % of the 39.5 M reported); of the pieces something continues,
-        59 wrong pixels and 189 457 right.
+        over the eleven sweep sets' 367 frames (``piece_check_px`` on), the pieces nothing
+        continues held every wrong piece pixel left (3 543: a wall strip 12 stripes off welded to
+        a sphere at 890 mm, 2 407) and 18 327 right ones, 17 051 (0.04 % of the 39.5 M reported)
+        in pieces no marker of their own fixes; the pieces something continues, 59 wrong pixels
+        and 189 457 right.
     resample : decode the frame shrunk by this factor (the linear mean over each pixel's area, as a
         camera with larger pixels sees it; ``cv2.INTER_AREA``) and expand the result back to every
         pixel (:func:`decode`).  0, the default: frames whose stripes span more than
