@@ -460,10 +460,10 @@ class DecodeParams:
         the box's region (its 6 markers fit, none of the strip's), between two regions of the wall
         that the strip continues above and below: 217 and 194 pixels 14 stripes off.
     piece_check_px : a piece of an indexed region that the masks leave apart from its body (its
-        largest 8-connected piece of reported pixels) is masked "unindexed" when at least this many
-        of its pixels contradict their stripe (cyan on a plain stripe, green or blue on a marker
-        stripe) and another index of the piece leaves at least this many fewer contradicting (0:
-        never).  See :func:`piece_check`.  The case (the third held-out set, ``--set holdout3``,
+        largest piece of reported pixels joined along rows and columns) is masked "unindexed" when
+        at least this many of its pixels contradict their stripe (cyan on a plain stripe, green or
+        blue on a marker stripe) and another index of the piece leaves at least this many fewer
+        contradicting (0: never).  See :func:`piece_check`.  The case (the third held-out set, ``--set holdout3``,
         thirty-first session): the multi-object scene at 875 mm with its wall at 1 400 mm, which
         is dim; islands of the wall above the big sphere were unwrapped into the sphere's region
         through rows the guards then masked, and took its index: 24 stripes off, 3-30 cyan pixels

@@ -41,7 +41,8 @@ depth edges when there are any).
     python scripts/sweep_decode.py --cache DIR --set holdout2     # 32 frames more (one rule since)
     python scripts/sweep_decode.py --cache DIR --set holdout3     # 32 frames more (two rules since)
     python scripts/sweep_decode.py --cache DIR --set holdout4     # 32 frames more (one rule since)
-    python scripts/sweep_decode.py --cache DIR --set holdout5     # 32 frames more, no rule made from them
+    python scripts/sweep_decode.py --cache DIR --set holdout5     # 32 frames more (one rule since)
+    python scripts/sweep_decode.py --cache DIR --set holdout6     # 32 frames more, no rule made from them
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
 wrong non-edge pixels under it (all wrong regions with ``--edges``), and a total.  Progress lines go to stderr.  Renders are cached in ``--cache`` (npz).
@@ -63,10 +64,10 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 
 #: the frame sets of ``--set``: the sweep's 48 scenes, the same objects under room light, the clean
 #: preset, other baselines, the rig mirrored, the multi-object scene's panel plain, other layouts of
-#: it, and five sets of frames of it kept out of the rules' making (the first two each spent by a
-#: rule of the thirtieth session, the third and fourth by the thirty-first session's piece rules)
+#: it, and six sets of frames of it kept out of the rules' making (the first two each spent by a
+#: rule of the thirtieth session, the third to fifth by the thirty-first session's piece rules)
 SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels", "layouts", "holdout", "holdout2",
-        "holdout3", "holdout4", "holdout5")
+        "holdout3", "holdout4", "holdout5", "holdout6")
 
 
 def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str, int, int, object]]:
@@ -271,9 +272,17 @@ HOLDOUT4_WALLS = (1.33, 1.56)
 #: the ``holdout5`` set's (thirty-first session, made before the isolated-piece rule,
 #: ``DecodeParams.piece_alone``, found on ``holdout3`` and ``holdout4`` frames, was run on it):
 #: other depths and walls again, objects of the scene's albedo or 0.45, the panel patched
-#: (seed 10) or plain (0.6, seed 11)
+#: (seed 10) or plain (0.6, seed 11).  Spent the same session: pieces joined along rows and
+#: columns only, made from its 755 mm band
 HOLDOUT5_DEPTHS_MM = (615.0, 755.0, 845.0, 905.0)
 HOLDOUT5_WALLS = (1.4, 1.65)
+
+#: the ``holdout6`` set's (thirty-first session, made before the pieces were joined by shared
+#: edges only, found on ``holdout3`` and ``holdout5`` frames, was run on it): other depths and
+#: walls again, objects of the scene's albedo or 0.5, the panel patched (seed 12) or plain (0.65,
+#: seed 13)
+HOLDOUT6_DEPTHS_MM = (660.0, 735.0, 790.0, 860.0)
+HOLDOUT6_WALLS = (1.28, 1.48)
 
 #: the held-out sets: ``_multi_grid``'s depths, walls, albedo, seeds (patched, plain) and plain
 #: panel albedo for each
@@ -281,7 +290,8 @@ HELD_OUT = {"holdout": (HOLDOUT_DEPTHS_MM, HOLDOUT_WALLS, 0.55, (2, 3), 0.5),
             "holdout2": (HOLDOUT2_DEPTHS_MM, HOLDOUT2_WALLS, 0.65, (4, 5), 0.45),
             "holdout3": (HOLDOUT3_DEPTHS_MM, HOLDOUT3_WALLS, 0.5, (6, 7), 0.55),
             "holdout4": (HOLDOUT4_DEPTHS_MM, HOLDOUT4_WALLS, 0.6, (8, 9), 0.5),
-            "holdout5": (HOLDOUT5_DEPTHS_MM, HOLDOUT5_WALLS, 0.45, (10, 11), 0.6)}
+            "holdout5": (HOLDOUT5_DEPTHS_MM, HOLDOUT5_WALLS, 0.45, (10, 11), 0.6),
+            "holdout6": (HOLDOUT6_DEPTHS_MM, HOLDOUT6_WALLS, 0.5, (12, 13), 0.65)}
 
 
 def _mirrored_set(S, quick: bool) -> list:
@@ -559,8 +569,8 @@ def main(argv=None) -> int:
                          "of the multi-object scene kept out of the rules' making: check a rule on them, do not "
                          "tune on them; one rule was made from them in the thirtieth session), holdout2, holdout3 "
                          "(32 frames more each, at other depths, walls and albedos, made then; one rule was made "
-                         "from each since), holdout4, holdout5 (32 more each, made in the thirty-first session; "
-                         "one rule was made from holdout4)")
+                         "from each since), holdout4, holdout5, holdout6 (32 more each, made in the thirty-first "
+                         "session; one rule was made from holdout4 and one from holdout5)")
     ap.add_argument("--edges", action="store_true", help="also list regions wrong only on depth-edge pixels")
     ap.add_argument("--out", help="folder for a picture of each scene with pixels on wrong stripes (created)")
     ap.add_argument("--unwrap", action="append", default=[], metavar="NAME=VALUE",

@@ -2664,9 +2664,9 @@ def test_piece_check_masks_cut_off_pieces_their_own_markers_or_neighbours_do_not
       index, and it is masked for nothing continuing it (``piece_alone``), unless a region beside
       it continues it, its own markers fix it (the piece over columns 0-59 shows markers 41, 49
       and 54), or the test is off.
-    * Kept when it touches the body; when it is the larger part the other part is the body (its
-      markers fix it: nothing is masked); of two parts of one size the first in row order is the
-      body."""
+    * Kept when it touches the body along a row or a column (at a corner alone it is a piece);
+      when it is the larger part the other part is the body (its markers fix it: nothing is
+      masked); of two parts of one size the first in row order is the body."""
     from gbscan.decode import UNINDEXED, piece_check
 
     spec = PatternSpec()
@@ -2697,6 +2697,8 @@ def test_piece_check_masks_cut_off_pieces_their_own_markers_or_neighbours_do_not
     assert run(true_shift=0, params=alone_off)[0] == (0, 0)
     assert run(gap=False)[0] == (0, 0)
     assert run(gap=False, true_shift=0)[0] == (0, 0)
+    assert run(gap=False, true_shift=0, piece_cols=(60, 63))[0] == (0, 40)   # touching at a corner only
+    assert run(gap=False, true_shift=0, piece_cols=(59, 63))[0] == (0, 0)    # sharing one edge
     assert run(piece_rows=(25, 44), piece_cols=(0, 59))[0] == (1200, 0)   # as large as the body: found after it
     n, mask, *_ = run(piece_rows=(25, 49), piece_cols=(0, 59))             # 1 500 px: the body
     assert n == (0, 0) and (mask[:20, :60] == OK).all()
@@ -2743,7 +2745,7 @@ def _piece_reference(mask, stripe, labels, region, is_marker, min_px, fix_px, ga
     contra = rep & (((labels == 3) & ~is_marker[s]) | (((labels == 1) | (labels == 2)) & is_marker[s]))
     pieces = []
     for g in np.unique(region[rep]):
-        lab, n = ndimage.label(rep & (region == g), structure=np.ones((3, 3), bool))
+        lab, n = ndimage.label(rep & (region == g))   # joined along rows and columns, as the kernel
         sizes = ndimage.sum(np.ones_like(lab), lab, range(1, n + 1))
         body = 1 + int(np.argmax(sizes))   # the first of the largest: the kernel's too (scan order)
         pieces += [lab == c for c in range(1, n + 1) if c != body]
@@ -3457,7 +3459,7 @@ def test_sweep_script_frame_sets(tmp_path, capsys):
     spec.loader.exec_module(mod)
     fran = 1 if sim.scenes.FRAN_PATH.is_file() else 0
     assert [len(mod.scene_list(False, w)) for w in mod.SETS] == [44 + 4 * fran, 44, 14 + 2 * fran, 33, 21, 45, 32, 32,
-                                                                 32, 32, 32, 32]
+                                                                 32, 32, 32, 32, 32]
     # the held-out frames share no depth with the other sets' multi-object frames, nor the two
     # held-out sets a depth or a wall
     others = {n.split("_")[1] for w in mod.SETS if not w.startswith("holdout") for n, *_ in mod.scene_list(False, w)
@@ -3466,7 +3468,8 @@ def test_sweep_script_frame_sets(tmp_path, capsys):
                  ("holdout2", mod.HOLDOUT2_DEPTHS_MM, mod.HOLDOUT2_WALLS),
                  ("holdout3", mod.HOLDOUT3_DEPTHS_MM, mod.HOLDOUT3_WALLS),
                  ("holdout4", mod.HOLDOUT4_DEPTHS_MM, mod.HOLDOUT4_WALLS),
-                 ("holdout5", mod.HOLDOUT5_DEPTHS_MM, mod.HOLDOUT5_WALLS))
+                 ("holdout5", mod.HOLDOUT5_DEPTHS_MM, mod.HOLDOUT5_WALLS),
+                 ("holdout6", mod.HOLDOUT6_DEPTHS_MM, mod.HOLDOUT6_WALLS))
     for i, (which, depths, walls) in enumerate(held_sets):
         held = mod.scene_list(False, which)
         assert len({n for n, *_ in held}) == 32 and all(n.startswith(which + "_") for n, *_ in held)

@@ -1446,8 +1446,9 @@ def piece_check(mask, column, stripe, conf, labels, region, is_marker, n_regions
     mask (H, W) uint8, column (H, W) float32, stripe (H, W) int32 absolute stripe, conf (H, W)
     float32: updated in place (NaN / -1 / 0 where masked); labels (H, W) uint8 colour classes;
     region (H, W) int32; is_marker (n_stripes,) bool, the pattern's marker stripes; n_regions:
-    more than the largest region id.  A region's reported pixels form 8-connected *pieces*; the
-    largest is its body (of two as large, the first in row order).  A reported pixel
+    more than the largest region id.  A region's reported pixels form *pieces*, joined along rows
+    and columns (4-connected: a corner is no contact); the largest is its body (of two as large,
+    the first in row order).  A reported pixel
     *contradicts* its stripe when it is cyan on a plain stripe or green / blue on a marker
     stripe; a piece's *margin* is how many fewer of its pixels contradict their stripes at its
     index than at the best other (every even shift of its stripes that keeps them within 2 of
@@ -1467,14 +1468,17 @@ def piece_check(mask, column, stripe, conf, labels, region, is_marker, n_regions
     n = rr.shape[0]
     parent = np.arange(n).astype(np.int64)
     for v in range(1, H):
-        # runs of rows v - 1 and v of one region that touch (8 neighbours): one piece
+        # runs of rows v - 1 and v of one region that share a column (4 neighbours): one piece.
+        # Pixels touching at a corner only are no evidence for each other (the continuity votes,
+        # like the unwrapping's links, are along rows and columns): a wall band below a sphere's
+        # slanted silhouette hung from it by one diagonal step at 725-755 mm
         i = row_start[v - 1]
         ie = row_start[v]
         for j in range(row_start[v], row_start[v + 1]):
-            while i < ie and r1[i] + 1 < r0[j]:
+            while i < ie and r1[i] < r0[j]:
                 i += 1
             k = i
-            while k < ie and r0[k] <= r1[j] + 1:
+            while k < ie and r0[k] <= r1[j]:
                 if rg[k] == rg[j]:
                     a = _find(parent, k)
                     b = _find(parent, j)
