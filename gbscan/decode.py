@@ -669,20 +669,12 @@ class DecodeParams:
             bad("subsampled_chroma", f"must be one of {', '.join(SUBSAMPLED_CHROMA)}, got {self.subsampled_chroma!r}")
         if not (float(self.step_guard_ratio) == 0 or float(self.step_guard_ratio) > 1):
             bad("step_guard_ratio", "must be 0 (off) or a brightness ratio above 1")
-        if isinstance(self.sandwich_rows, bool) or int(self.sandwich_rows) != self.sandwich_rows \
-                or int(self.sandwich_rows) < 0:
-            bad("sandwich_rows", f"must be a whole number of rows >= 0 (0 disables), got {self.sandwich_rows!r}")
-        if isinstance(self.piece_check_px, bool) or int(self.piece_check_px) != self.piece_check_px \
-                or int(self.piece_check_px) < 0:
-            bad("piece_check_px", f"must be a whole number of pixels >= 0 (0 disables), got {self.piece_check_px!r}")
-        if not isinstance(self.piece_alone, (bool, np.bool_)):
-            bad("piece_alone", f"must be true or false, got {self.piece_alone!r}")
         if not (float(self.rim_bias_px) >= 0) or int(self.rim_end_px) < 0:
             bad("rim_bias_px/rim_end_px", "must be >= 0 (0 disables the rule)")
         dr = self.rim_end_dim_ratio
         if isinstance(dr, bool) or not isinstance(dr, (int, float)) or not 0 <= dr <= 1:
             bad("rim_end_dim_ratio", f"must be a brightness ratio in [0, 1] (0: every end row masked), got {dr!r}")
-        for name in ("rim_guard_no_boundary", "join_transitions", "crop"):
+        for name in ("rim_guard_no_boundary", "join_transitions", "crop", "piece_alone"):
             if not isinstance(getattr(self, name), bool):
                 bad(name, f"must be True or False, got {getattr(self, name)!r}")
         cs = self.confidence_spread_px
@@ -691,12 +683,13 @@ class DecodeParams:
         rs = self.resample
         if isinstance(rs, bool) or not isinstance(rs, (int, float)) or not (rs == 0 or 1 <= rs <= MAX_RESAMPLE):
             bad("resample", f"must be 0 (automatic), 1 (never) or a shrink factor in (1, {MAX_RESAMPLE}], got {rs!r}")
-        for name in ("rim_guard_px", "rim_end_rows", "rim_lit_rows"):
+        for name, unit in (("rim_guard_px", "rows"), ("rim_end_rows", "rows"), ("rim_lit_rows", "rows"),
+                           ("sandwich_rows", "rows"), ("piece_check_px", "pixels")):
             v = getattr(self, name)
             if v is None:
                 continue
             if isinstance(v, bool) or not float(v).is_integer() or int(v) < 0:
-                bad(name, f"must be a whole number of rows >= 0 (0 disables the rule), got {v!r}")
+                bad(name, f"must be a whole number of {unit} >= 0 (0 disables the rule), got {v!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -238,60 +238,29 @@ def _layout_set(S, quick: bool) -> list:
     return _multi_grid(S, "multi", LAYOUT_DEPTHS_MM, LAYOUT_WALLS, 0.4, (0, 1), 0.6, quick)
 
 
-#: the ``holdout`` set's depths (mm) and walls (times the depth): none of the other sets'.  Frames
-#: kept out of the rules' making (twenty-ninth session): objects of the scene's albedo or 0.55, the
-#: panel patched (seed 2) or plain (0.5, seed 3): 32 frames.  Run to check that a rule found on the
-#: other sets holds; a rule made from one of these frames spends the set (say so in docs/history.md
-#: and make another: spent in the thirtieth session by ``UnwrapParams.tilt_follow_rows``)
-HOLDOUT_DEPTHS_MM = (590.0, 710.0, 770.0, 830.0)
-HOLDOUT_WALLS = (1.3, 1.46)
-
-
-#: the ``holdout2`` set's depths (mm) and walls (times the depth), made in the thirtieth session
-#: when a rule (``UnwrapParams.tilt_follow_rows``) was made from a ``holdout`` frame: none of the
-#: other sets' depths or walls; objects of the scene's albedo or 0.65, the panel patched (seed 4)
-#: or plain (0.45, seed 5).  The same use: check a rule on it, do not tune on it (spent the same
-#: session by ``DecodeParams.sandwich_rows``)
-HOLDOUT2_DEPTHS_MM = (565.0, 675.0, 785.0, 855.0)
-HOLDOUT2_WALLS = (1.25, 1.52)
-
-#: the ``holdout3`` set's (thirtieth session, when a rule, ``DecodeParams.sandwich_rows``, was made
-#: from a ``holdout2`` frame): other depths and walls again, objects of the scene's albedo or 0.5,
-#: the panel patched (seed 6) or plain (0.55, seed 7).  Spent in the thirty-first session by
-#: ``DecodeParams.piece_check_px`` and ``piece_alone``, made from its 875 mm / 1 400 mm islands
-HOLDOUT3_DEPTHS_MM = (635.0, 725.0, 815.0, 875.0)
-HOLDOUT3_WALLS = (1.35, 1.6)
-
-#: the ``holdout4`` set's (thirty-first session, made before the piece check,
-#: ``DecodeParams.piece_check_px``, found on ``holdout3`` frames, was run on it): other depths and
-#: walls again, objects of the scene's albedo or 0.6, the panel patched (seed 8) or plain (0.5,
-#: seed 9).  Spent the same session by ``DecodeParams.piece_alone``, made from its pieces
-HOLDOUT4_DEPTHS_MM = (605.0, 745.0, 820.0, 890.0)
-HOLDOUT4_WALLS = (1.33, 1.56)
-
-#: the ``holdout5`` set's (thirty-first session, made before the isolated-piece rule,
-#: ``DecodeParams.piece_alone``, found on ``holdout3`` and ``holdout4`` frames, was run on it):
-#: other depths and walls again, objects of the scene's albedo or 0.45, the panel patched
-#: (seed 10) or plain (0.6, seed 11).  Spent the same session: pieces joined along rows and
-#: columns only, made from its 755 mm band
-HOLDOUT5_DEPTHS_MM = (615.0, 755.0, 845.0, 905.0)
-HOLDOUT5_WALLS = (1.4, 1.65)
-
-#: the ``holdout6`` set's (thirty-first session, made before the pieces were joined by shared
-#: edges only, found on ``holdout3`` and ``holdout5`` frames, was run on it): other depths and
-#: walls again, objects of the scene's albedo or 0.5, the panel patched (seed 12) or plain (0.65,
-#: seed 13)
-HOLDOUT6_DEPTHS_MM = (660.0, 735.0, 790.0, 860.0)
-HOLDOUT6_WALLS = (1.28, 1.48)
-
-#: the held-out sets: ``_multi_grid``'s depths, walls, albedo, seeds (patched, plain) and plain
-#: panel albedo for each
-HELD_OUT = {"holdout": (HOLDOUT_DEPTHS_MM, HOLDOUT_WALLS, 0.55, (2, 3), 0.5),
-            "holdout2": (HOLDOUT2_DEPTHS_MM, HOLDOUT2_WALLS, 0.65, (4, 5), 0.45),
-            "holdout3": (HOLDOUT3_DEPTHS_MM, HOLDOUT3_WALLS, 0.5, (6, 7), 0.55),
-            "holdout4": (HOLDOUT4_DEPTHS_MM, HOLDOUT4_WALLS, 0.6, (8, 9), 0.5),
-            "holdout5": (HOLDOUT5_DEPTHS_MM, HOLDOUT5_WALLS, 0.45, (10, 11), 0.6),
-            "holdout6": (HOLDOUT6_DEPTHS_MM, HOLDOUT6_WALLS, 0.5, (12, 13), 0.65)}
+#: the held-out sets, frames kept out of the rules' making: per set ``_multi_grid``'s depths (mm),
+#: walls (times the depth), albedo, seeds (panel patched, plain) and plain panel albedo.  Each
+#: set's depths and walls are none of the other sets' (a test checks it).  Run a set to check that a
+#: rule found elsewhere holds; a rule made from one of its frames spends it (say so in
+#: docs/history.md and make another before the next rule is run on it)
+HELD_OUT = {
+    # twenty-ninth session; spent in the thirtieth by ``UnwrapParams.tilt_follow_rows``
+    "holdout": ((590.0, 710.0, 770.0, 830.0), (1.3, 1.46), 0.55, (2, 3), 0.5),
+    # thirtieth session, made before that rule was run on it; spent the same session by
+    # ``DecodeParams.sandwich_rows``
+    "holdout2": ((565.0, 675.0, 785.0, 855.0), (1.25, 1.52), 0.65, (4, 5), 0.45),
+    # thirtieth session, after the sandwich guard; spent in the thirty-first by
+    # ``DecodeParams.piece_check_px`` and ``piece_alone``, made from its 875 mm / 1 400 mm islands
+    "holdout3": ((635.0, 725.0, 815.0, 875.0), (1.35, 1.6), 0.5, (6, 7), 0.55),
+    # thirty-first session, made before ``piece_check_px`` was run on it; spent the same session by
+    # ``piece_alone``, made from its pieces
+    "holdout4": ((605.0, 745.0, 820.0, 890.0), (1.33, 1.56), 0.6, (8, 9), 0.5),
+    # thirty-first session, made before ``piece_alone`` was run on it; spent the same session:
+    # pieces joined along rows and columns only, made from its 755 mm band
+    "holdout5": ((615.0, 755.0, 845.0, 905.0), (1.4, 1.65), 0.45, (10, 11), 0.6),
+    # thirty-first session, made before the pieces were joined by shared edges only
+    "holdout6": ((660.0, 735.0, 790.0, 860.0), (1.28, 1.48), 0.5, (12, 13), 0.65),
+}
 
 
 def _mirrored_set(S, quick: bool) -> list:

@@ -3464,12 +3464,8 @@ def test_sweep_script_frame_sets(tmp_path, capsys):
     # held-out sets a depth or a wall
     others = {n.split("_")[1] for w in mod.SETS if not w.startswith("holdout") for n, *_ in mod.scene_list(False, w)
               if n.startswith("multi_")}
-    held_sets = (("holdout", mod.HOLDOUT_DEPTHS_MM, mod.HOLDOUT_WALLS),
-                 ("holdout2", mod.HOLDOUT2_DEPTHS_MM, mod.HOLDOUT2_WALLS),
-                 ("holdout3", mod.HOLDOUT3_DEPTHS_MM, mod.HOLDOUT3_WALLS),
-                 ("holdout4", mod.HOLDOUT4_DEPTHS_MM, mod.HOLDOUT4_WALLS),
-                 ("holdout5", mod.HOLDOUT5_DEPTHS_MM, mod.HOLDOUT5_WALLS),
-                 ("holdout6", mod.HOLDOUT6_DEPTHS_MM, mod.HOLDOUT6_WALLS))
+    held_sets = [(which, depths, walls) for which, (depths, walls, *_) in mod.HELD_OUT.items()]
+    assert [w for w, *_ in held_sets] == [w for w in mod.SETS if w.startswith("holdout")]
     for i, (which, depths, walls) in enumerate(held_sets):
         held = mod.scene_list(False, which)
         assert len({n for n, *_ in held}) == 32 and all(n.startswith(which + "_") for n, *_ in held)

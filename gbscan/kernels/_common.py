@@ -1,5 +1,5 @@
 """Colour classes of the decoder's label images and small row loops and helpers (least squares, a
-sorted search), shared by the kernel modules."""
+sorted search, a colour against the markers), shared by the kernel modules."""
 NONE, GREEN, BLUE, CYAN = 0, 1, 2, 3
 
 import numpy as np
@@ -19,6 +19,13 @@ def ctz64(m):
     """The index of the lowest set bit of a uint64 ``m != 0``."""
     low = m & (~m + np.uint64(1))
     return _CTZ_TABLE[(low * _DEBRUIJN64) >> np.uint64(58)]
+
+
+@njit(cache=True, nogil=True)
+def contradicts(lab, marker):
+    """Whether a pixel of colour class ``lab`` contradicts a stripe that is (``marker``) or is not
+    a marker stripe: cyan on a plain stripe, green or blue on a marker stripe."""
+    return (lab == CYAN and not marker) or ((lab == GREEN or lab == BLUE) and marker)
 
 
 @njit(cache=True, nogil=True)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._common import ctz64, fill_row, fit_add, fit_slope, lower_bound
+from ._common import contradicts, ctz64, fill_row, fit_add, fit_slope, lower_bound
 
 
 # -- decoder: rim guard (gbscan.decode.rim_guard) --------------------------------------------------
@@ -1348,12 +1348,6 @@ def sandwich_guard(mask, column, stripe, conf, region, period, max_rows, gap_row
 # -- decoder: pieces of a region cut off from its body (gbscan.decode.piece_check) ------------------
 
 @njit(cache=True, nogil=True)
-def _contradicts(lab, marker):
-    # a reported pixel's colour against its stripe: cyan on a plain stripe, green or blue on a marker
-    return (lab == 3 and not marker) or ((lab == 1 or lab == 2) and marker)
-
-
-@njit(cache=True, nogil=True)
 def _find(parent, a):
     while parent[a] != a:
         parent[a] = parent[parent[a]]
@@ -1510,23 +1504,20 @@ def piece_check(mask, column, stripe, conf, labels, region, is_marker, n_regions
     if pieces == 0:
         return 0, 0
     # pixel classes for the continuity test: 1 reported outside every piece, 2 in a piece
+    # and the piece runs, grouped by piece
     cls = np.zeros((H, W), np.uint8)
+    pr = np.empty(n, np.int64)
     n_piece_runs = 0
     for j in range(n):
         piece = root[j] != body[rg[j]]
-        n_piece_runs += piece
+        if piece:
+            pr[n_piece_runs] = j
+            n_piece_runs += 1
         c = np.uint8(2) if piece else np.uint8(1)
         for u in range(r0[j], r1[j] + 1):
             cls[rr[j], u] = c
-    # the piece runs grouped by piece
-    pr = np.empty(n_piece_runs, np.int64)
-    m = 0
-    for j in range(n):
-        if root[j] != body[rg[j]]:
-            pr[m] = j
-            m += 1
-    order = np.argsort(root[pr], kind="mergesort")
-    pr = pr[order]
+    pr = pr[:n_piece_runs]
+    pr = pr[np.argsort(root[pr], kind="mergesort")]
     n_a = 0
     n_b = 0
     big = np.iinfo(np.int64).max // 4
@@ -1544,7 +1535,7 @@ def piece_check(mask, column, stripe, conf, labels, region, is_marker, n_regions
                 st = stripe[rr[j], u]
                 s0 = min(s0, st)
                 s1 = max(s1, st)
-                if 0 <= st < n_st and _contradicts(labels[rr[j], u], is_marker[st]):
+                if 0 <= st < n_st and contradicts(labels[rr[j], u], is_marker[st]):
                     own += 1
         contra = min_px > 0 and own >= min_px
         alone = False

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._common import BLUE, CYAN, GREEN, NONE, copy_row, fill_row, fit_add, fit_slope, run_starts
+from ._common import BLUE, CYAN, GREEN, NONE, contradicts, copy_row, fill_row, fit_add, fit_slope, run_starts
 
 
 @njit(cache=True, nogil=True)
@@ -1406,11 +1406,7 @@ def component_marker_counts(comp, relative, labels, comp_shift, take, is_marker)
             n_px[c] += 1
             st = relative[v, u] + comp_shift[c]
             lb = labels[v, u]
-            if st < 0 or st >= n_st:
-                n_bad[c] += 1
-            elif lb == CYAN and not is_marker[st]:
-                n_bad[c] += 1
-            elif (lb == GREEN or lb == BLUE) and is_marker[st]:
+            if st < 0 or st >= n_st or contradicts(lb, is_marker[st]):
                 n_bad[c] += 1
     return n_px, n_bad
 
