@@ -1971,6 +1971,8 @@ def _link_through_neighbours(cls, un, idx, column_all, column_rel, pattern: Patt
     idx.markers_seen = _grow(idx.markers_seen, n_new)
     if idx.stripe_margin is not None:
         idx.stripe_margin = _grow(idx.stripe_margin, n_new)
+    if idx.stripe_strength is not None:
+        idx.stripe_strength = _grow(idx.stripe_strength, n_new)
     linked = lk.linked.tolist()
     idx.why = [("linked" if linked[k] else idx.why[k]) for k in range(n_reg)] + ["linked"] * ext
     un.region_px = _grow(un.region_px, n_new)

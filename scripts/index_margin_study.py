@@ -9,14 +9,20 @@ decoder's weld repairs -- with the simulator's truth:
 
 * the region's true offset (the most common ``true stripe - relative index`` of its pixels) and
   its *purity* (the share of its pixels on that offset: below 95 % the region spans two surfaces);
-* its ``why``, its best offset and its stripe margin (``RegionIndex.stripe_margin``: how many
-  more stripes every other candidate offset contradicts than the best).
+* its ``why``, its best offset, its stripe margin (``RegionIndex.stripe_margin``: how many
+  more stripes every other candidate offset contradicts than the best) and, for a margin of 1,
+  the telling stripe's strength (``RegionIndex.stripe_strength``: the contradicting pixels of
+  the one stripe that tells the best from the candidates one stripe worse).
 
 Prints, for stripe margins 1-4, how many of the ambiguous (``ambiguous offset``) one-surface
 regions that margin would index, their pixels, and how many of them at a wrong offset; the same for
 the regions spanning two surfaces (their best offset is right for the larger part only: what is
 left of them is the row checks' business); and the regions the pixel margin indexes, for scale.
-``UnwrapParams.index_margin_stripes`` (2) was chosen by it (twenty-eighth session).  The sweep
+Then the ambiguous regions (either kind) with a stripe margin of exactly 1 by their telling stripe's
+strength: how many a threshold would index, and how many wrongly.
+``UnwrapParams.index_margin_stripes`` (2) was chosen by it (twenty-eighth session), and
+``UnwrapParams.index_strong_stripe_px`` (60) over the thirteen sets ``main`` ... ``holdout6``
+(thirty-second session; run it with ``--set`` to leave out the sets kept fresh).  The sweep
 itself (``sweep_decode.py``) measures the decoder end to end, the stripe margin included.
 """
 from __future__ import annotations
@@ -55,7 +61,8 @@ def region_records(labels, relative, region, idx, truth, stripe_px: int) -> list
         vals, cnt = np.unique(diff[a:b], return_counts=True)
         recs.append({"why": idx.why[k], "best": int(idx.offset[k]), "true": int(vals[np.argmax(cnt)]),
                      "purity": float(cnt.max() / cnt.sum()), "px": int(b - a),
-                     "stripes": int(idx.stripe_margin[k]), "indexed": bool(idx.indexed[k])})
+                     "stripes": int(idx.stripe_margin[k]), "indexed": bool(idx.indexed[k]),
+                     "strength": int(idx.stripe_strength[k]) if idx.stripe_strength is not None else 0})
     return recs
 
 
@@ -106,6 +113,18 @@ def report(recs: list[dict]) -> None:
             wrong = [r for r in take if r["best"] != r["true"]]
             print(f"  >= {m}             {len(take):5d} ({sum(r['px'] for r in take):8d})     "
                   f"{len(wrong):5d} ({sum(r['px'] for r in wrong):7d})")
+    # the strong-stripe index: ambiguous regions with a stripe margin of exactly 1, by how many
+    # contradicting pixels the one stripe that tells the best from the others shows
+    one = [r for r in amb if r["stripes"] == 1]
+    print(f"\nambiguous, stripe margin 1: {len(one)} scorings, {sum(r['px'] for r in one)} px "
+          f"(unwrap.index_strong_stripe_px indexes those whose telling stripe reaches it)")
+    print("  telling stripe  would index (px)        at a wrong offset (px)   wrong, their stripes (px)")
+    for t in (12, 24, 36, 48, 60, 80, 100):
+        take = [r for r in one if r["strength"] >= t]
+        wrong = [r for r in take if r["best"] != r["true"]]
+        print(f"  >= {t:3d} px       {len(take):5d} ({sum(r['px'] for r in take):8d})     "
+              f"{len(wrong):5d} ({sum(r['px'] for r in wrong):7d})      "
+              f"{', '.join(str(r['strength']) for r in wrong[:12])}")
     ok = [r for r in recs if r["indexed"] and r["purity"] >= PURE]
     bad = [r for r in ok if r["best"] != r["true"]]
     print(f"\nindexed by the pixel margin, one surface: {len(ok)} scorings, {len(bad)} at a wrong offset")

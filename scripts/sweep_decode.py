@@ -43,6 +43,8 @@ depth edges when there are any).
     python scripts/sweep_decode.py --cache DIR --set holdout4     # 32 frames more (one rule since)
     python scripts/sweep_decode.py --cache DIR --set holdout5     # 32 frames more (one rule since)
     python scripts/sweep_decode.py --cache DIR --set holdout6     # 32 frames more, no rule made from them
+    python scripts/sweep_decode.py --cache DIR --set holdout7     # 32 frames more (thirty-second session)
+    python scripts/sweep_decode.py --cache DIR --set faces        # heads and real faces at 575-805 mm, turned (32)
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
 wrong non-edge pixels under it (all wrong regions with ``--edges``), and a total.  Progress lines go to stderr.  Renders are cached in ``--cache`` (npz).
@@ -67,7 +69,7 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 #: it, and six sets of frames of it kept out of the rules' making (the first two each spent by a
 #: rule of the thirtieth session, the third to fifth by the thirty-first session's piece rules)
 SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels", "layouts", "holdout", "holdout2",
-        "holdout3", "holdout4", "holdout5", "holdout6")
+        "holdout3", "holdout4", "holdout5", "holdout6", "holdout7", "faces")
 
 
 def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str, int, int, object]]:
@@ -92,6 +94,8 @@ def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str,
         return _layout_set(S, quick)
     if which in HELD_OUT:
         return _multi_grid(S, which, *HELD_OUT[which], quick)
+    if which == "faces":
+        return _face_set(S, quick)
     if which != "main":
         raise ValueError(f"unknown frame set {which!r}, expected one of {SETS}")
     out = []
@@ -260,7 +264,47 @@ HELD_OUT = {
     "holdout5": ((615.0, 755.0, 845.0, 905.0), (1.4, 1.65), 0.45, (10, 11), 0.6),
     # thirty-first session, made before the pieces were joined by shared edges only
     "holdout6": ((660.0, 735.0, 790.0, 860.0), (1.28, 1.48), 0.5, (12, 13), 0.65),
+    # thirty-second session, made before any rule of that session was run on it
+    "holdout7": ((645.0, 715.0, 805.0, 880.0), (1.36, 1.62), 0.45, (14, 15), 0.55),
 }
+
+
+#: the ``faces`` set's synthetic heads: nose tip distance (mm), yaw, pitch (degrees) and a wall
+#: behind (times the distance) or none; each with seeds 20 and 21
+FACE_HEADS = ((575.0, -30.0, 10.0, None), (595.0, 25.0, -12.0, 1.45), (630.0, -15.0, -8.0, None),
+              (665.0, 30.0, 5.0, 1.3), (705.0, 10.0, 12.0, None), (745.0, -25.0, 0.0, 1.55),
+              (785.0, 20.0, -10.0, None), (610.0, 0.0, 15.0, 1.4), (725.0, -35.0, -5.0, None),
+              (765.0, 35.0, 8.0, 1.35))
+#: its real faces (``../shared/data/fran_face``): distance, yaw, wall (times the distance) or none;
+#: each with seeds 22 and 23
+FACE_FRANS = ((585.0, -25.0, None), (640.0, 30.0, 1.4), (695.0, -10.0, None), (750.0, 15.0, 1.5),
+              (805.0, -30.0, None), (680.0, 0.0, 1.35))
+
+
+def _face_set(S, quick: bool) -> list:
+    # held out (thirty-second session, made after every rule): the synthetic head and the real
+    # face at 575-805 mm, turned up to 35 degrees, some before a wall -- the scanner's showcase at
+    # poses and distances no rule was tuned on (the other sets hold 650-700 mm heads and faces)
+    out = []
+    for d, yaw, pitch, w in FACE_HEADS:
+        for seed in (20, 21):
+            name = f"faces_head_{d:.0f}_y{yaw:+.0f}_p{pitch:+.0f}{'' if w is None else f'_wall{d * w:.0f}'}_s{seed}"
+            out.append((name, "typical", seed, 3, lambda d=d, yaw=yaw, pitch=pitch, w=w: S.head(
+                d, yaw, pitch, wall_mm=None if w is None else d * w)))
+    if S.FRAN_PATH.is_file():
+        for d, yaw, w in FACE_FRANS:
+            for seed in (22, 23):
+                name = f"faces_fran_{d:.0f}_y{yaw:+.0f}{'' if w is None else f'_wall{d * w:.0f}'}_s{seed}"
+                out.append((name, "typical", seed, 3, lambda d=d, yaw=yaw, w=w: _fran_before(S, d, yaw, w)))
+    return out[::3] if quick else out
+
+
+def _fran_before(S, d: float, yaw: float, w: float | None):
+    # the real face, with a grey wall (albedo 0.5, as the head's) at w times its distance when w
+    face = S.fran_face(distance_mm=d, yaw_deg=yaw)
+    if w is None:
+        return face
+    return S.combine(face, S.Plane(np.eye(3), [0.0, 0.0, d * w], 0.5))
 
 
 def _mirrored_set(S, quick: bool) -> list:
@@ -539,7 +583,10 @@ def main(argv=None) -> int:
                          "tune on them; one rule was made from them in the thirtieth session), holdout2, holdout3 "
                          "(32 frames more each, at other depths, walls and albedos, made then; one rule was made "
                          "from each since), holdout4, holdout5, holdout6 (32 more each, made in the thirty-first "
-                         "session; one rule was made from holdout4 and one from holdout5)")
+                         "session; one rule was made from holdout4 and one from holdout5), holdout7 (32 more, "
+                         "thirty-second session), faces (held out too: the synthetic head at 575-785 mm turned "
+                         "up to 35 degrees and the real face at 585-805 mm, some before a wall; 32 frames with the "
+                         "real face's mesh, 20 without)")
     ap.add_argument("--edges", action="store_true", help="also list regions wrong only on depth-edge pixels")
     ap.add_argument("--out", help="folder for a picture of each scene with pixels on wrong stripes (created)")
     ap.add_argument("--unwrap", action="append", default=[], metavar="NAME=VALUE",

@@ -1360,7 +1360,8 @@ def test_compiled_offset_scores_match_the_correlation_form(monkeypatch):
             monkeypatch.setattr(uw, "_SCORE_COMPILED", compiled)
             got.append(uw.index_regions(labels, relative, region, n_reg, spec, params))
         a, b = got
-        for f in ("offset", "indexed", "markers_seen", "evidence", "mismatch", "runner_up", "stripe_margin"):
+        for f in ("offset", "indexed", "markers_seen", "evidence", "mismatch", "runner_up", "stripe_margin",
+                  "stripe_strength"):
             np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
         assert a.why == b.why
     assert set(a.why) >= {"empty region", "region too thin"}
@@ -3459,7 +3460,12 @@ def test_sweep_script_frame_sets(tmp_path, capsys):
     spec.loader.exec_module(mod)
     fran = 1 if sim.scenes.FRAN_PATH.is_file() else 0
     assert [len(mod.scene_list(False, w)) for w in mod.SETS] == [44 + 4 * fran, 44, 14 + 2 * fran, 33, 21, 45, 32, 32,
-                                                                 32, 32, 32, 32, 32]
+                                                                 32, 32, 32, 32, 32, 32, 20 + 12 * fran]
+    # the held-out faces: heads and real faces at distances and turns no other set's faces use
+    faces = mod.scene_list(False, "faces")
+    assert len({n for n, *_ in faces}) == len(faces) and all(n.startswith("faces_") for n, *_ in faces)
+    face_d = {float(n.split("_")[2]) for n, *_ in faces}
+    assert len(face_d) == 10 + 6 * fran and not face_d & {620.0, 650.0, 700.0}   # the other sets' heads and faces
     # the held-out frames share no depth with the other sets' multi-object frames, nor the two
     # held-out sets a depth or a wall
     others = {n.split("_")[1] for w in mod.SETS if not w.startswith("holdout") for n, *_ in mod.scene_list(False, w)

@@ -1,5 +1,6 @@
 """The seven unwrapping steps and the marker indexing on small synthetic label images."""
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -2072,6 +2073,45 @@ def test_index_margin_stripes_indexes_a_sphere_whose_runner_up_contradicts_its_s
         uw.UnwrapParams(index_margin_stripes=-1)
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_index_strong_stripe_px_indexes_a_region_one_stripe_apart_only_when_that_stripe_is_well_seen(compiled,
+                                                                                                      monkeypatch):
+    """UnwrapParams.index_strong_stripe_px (:func:`index_by_stripes`): stripes 50-60 show markers
+    54 (on all 60 rows) and 59 (on its first ``vis`` rows).  The offsets that put a marker on 54
+    and none elsewhere in 50-60 contradict only stripe 59's cyan: a stripe margin of 1, and 59's
+    3 * ``vis`` cyan pixels are what tells them from the right offset (``stripe_strength``).  Under
+    the pixel margin (1.5 marker events, 120 px here) the region is ambiguous; with 59 seen on 60
+    pixels it is indexed, right, with 57 it is not.  Compiled and reference scoring agree."""
+    monkeypatch.setattr(uw, "_SCORE_COMPILED", compiled)
+    spec = PatternSpec()
+    rows = 60
+    lab = stripe_image(spec, 50, 11, rows=rows)
+    rel = np.repeat(np.arange(11), 3)[None].repeat(rows, 0).astype(np.int32)   # true index = rel + 50
+    p = uw.UnwrapParams()
+    assert p.index_strong_stripe_px == 60
+    for vis, take in ((20, True), (19, False)):
+        reg = np.zeros(lab.shape, np.int32)
+        reg[vis:, 27:30] = -1                 # marker 59 (relative 9) seen on its first vis rows
+        idx = uw.index_regions(lab, rel, reg, 1, spec, p)
+        assert idx.why[0] == uw.AMBIGUOUS and idx.offset[0] == 50 and idx.markers_seen[0] == 2
+        assert idx.stripe_margin[0] == 1 and idx.stripe_strength[0] == 3 * vis
+        assert idx.runner_up[0] - idx.mismatch[0] == 3 * vis < uw._margin_px(p, idx.evidence[0], 2)
+        new = uw.index_by_stripes(idx, p)
+        assert new.indexed[0] == take and (new.why[0] == uw.STRONG_OK) == take
+        if take:
+            assert new.offset[0] == 50 and not idx.indexed[0]   # a new index; the old one is kept
+            # the threshold, and switched off (0): the region stays ambiguous
+            assert uw.index_by_stripes(idx, uw.UnwrapParams(index_strong_stripe_px=61)) is idx
+            assert uw.index_by_stripes(idx, uw.UnwrapParams(index_strong_stripe_px=0)) is idx
+            # with a stripe margin of 1 asked for, the stripe margin indexes it as before
+            assert uw.index_by_stripes(idx, uw.UnwrapParams(index_margin_stripes=1)).why[0] == uw.STRIPE_OK
+    # marker 59 seen on every row: the pixel margin indexes the region, nothing left to do
+    idx = uw.index_regions(lab, rel, np.zeros(lab.shape, np.int32), 1, spec, p)
+    assert idx.why[0] == "ok" and idx.stripe_strength[0] == 3 * rows and uw.index_by_stripes(idx, p) is idx
+    with pytest.raises(GBError, match="index_strong_stripe_px"):
+        uw.UnwrapParams(index_strong_stripe_px=-1)
+
+
 def test_index_tests_equals_np_select():
     rng = np.random.default_rng(2)
     n = 500
@@ -2513,8 +2553,14 @@ def test_index_margin_study_records_regions_against_the_truth(capsys):
     assert recs[0]["why"] == idx.why[0] and recs[0]["stripes"] == idx.stripe_margin[0]
     m0 = (reg == 0)
     assert recs[0]["px"] == m0.sum() and recs[0]["purity"] == pytest.approx(1 - (m0[:10, 40:57]).sum() / m0.sum())
-    mod.report(recs + [dict(recs[0], why="ambiguous offset", stripes=2, purity=1.0, best=60, true=54)])
+    assert [r["strength"] for r in recs] == idx.stripe_strength.tolist()
+    mod.report(recs + [dict(recs[0], why="ambiguous offset", stripes=2, purity=1.0, best=60, true=54),
+                       dict(recs[0], why="ambiguous offset", stripes=1, strength=70, best=60, true=54)])
     out = capsys.readouterr().out
+    margin1 = out.split("ambiguous, stripe margin 1: 1 scorings")[1].split("indexed by the pixel margin")[0]
+    table1 = {ln.split()[1]: re.findall(r"(\d+) \(\s*\d+\)", ln) for ln in margin1.splitlines()
+              if ln.strip().startswith(">=")}   # scorings indexed, of them wrong
+    assert table1["60"] == ["1", "1"] and table1["80"] == ["0", "0"]   # 60 px would index it, wrongly
     one_surface = out.split("ambiguous, one surface: 1 scorings")[1].split("ambiguous, two surfaces")[0]
     table = {ln.split()[1]: [ln.split()[2], ln.split()[5]] for ln in one_surface.splitlines()
              if ln.strip().startswith(">=")}   # scorings indexed, of them wrong

@@ -340,7 +340,11 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, 
     none; 0 for unscored regions).  A stripe (relative index) contradicts a candidate when it
     shows at least ``min_marker_px`` cyan pixels where the candidate puts a plain stripe, at
     least ``min_marker_px`` green/blue pixels where it puts a marker, or at least
-    ``min_marker_px`` pixels outside the pattern."""
+    ``min_marker_px`` pixels outside the pattern.  And ``stripe_strength`` (n_reg,) int64, for
+    the regions whose stripe margin is 1 (0 for the others): over the candidates inside the
+    working volume that contradict one stripe more than the best, the fewest contradicting
+    pixels of the strongest stripe that contradicts the candidate and not the best (how well
+    the one stripe that tells them apart is seen)."""
     n_reg = rmin.shape[0]
     n_st = is_marker.shape[0]
     status = np.zeros(n_reg, np.int64)
@@ -350,6 +354,7 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, 
     mismatch = np.zeros(n_reg, np.int64)
     runner = np.zeros(n_reg, np.int64)
     stripes = np.zeros(n_reg, np.int64)
+    strength = np.zeros(n_reg, np.int64)
     big = np.iinfo(np.int64).max // 4
     for k in range(n_reg):
         r0 = rmin[k]
@@ -432,7 +437,30 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, 
         mismatch[k] = best_mis
         runner[k] = second
         stripes[k] = fewest - best_bad if fewest < big else big
-    return status, seen, offset, evidence, mismatch, runner, stripes
+        if stripes[k] == 1:
+            weakest = big
+            for i in range(n_cand):
+                if cand_A[i] == best_A or cand_bad[i] != best_bad + 1 or \
+                        not (npx[k] == 0 or cover[cstart[k] + cand_A[i] + span] >= need):
+                    continue
+                strongest = 0
+                for j in range(span):
+                    px_c = _contradicting_px(cand_A[i] + j, n_c[b0 + j], n_g[b0 + j], is_marker)
+                    if px_c >= min_marker_px and \
+                            _contradicting_px(best_A + j, n_c[b0 + j], n_g[b0 + j], is_marker) < min_marker_px:
+                        strongest = max(strongest, px_c)
+                weakest = min(weakest, strongest)
+            strength[k] = weakest if weakest < big else 0
+    return status, seen, offset, evidence, mismatch, runner, stripes, strength
+
+
+@njit(cache=True, nogil=True)
+def _contradicting_px(a, c, g, is_marker):
+    # the pixels of a stripe (c cyan, g green / blue) that contradict absolute stripe a: anything
+    # outside the pattern, green / blue on a marker, cyan on a plain stripe
+    if a < 0 or a >= is_marker.shape[0]:
+        return c + g
+    return g if is_marker[a] else c
 
 
 @njit(cache=True, nogil=True)
