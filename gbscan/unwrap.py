@@ -1553,7 +1553,7 @@ def split_row(labels: np.ndarray, relative: np.ndarray, region: np.ndarray, k: i
     status, seen, offset, evidence, mismatch, runner_up, _, _ = kernels.score_offsets(
         np.full(2 * m, r0, np.int64), np.full(2 * m, r0 + S - 1, np.int64), np.arange(2 * m + 1, dtype=np.int64) * S,
         pc.ravel(), pg.ravel(), is_marker, int(params.min_marker_px), np.zeros(0, np.int64),
-        np.zeros(2 * m + 1, np.int64), np.zeros(2 * m, np.int64), float(params.volume_frac))
+        np.zeros(2 * m + 1, np.int64), np.zeros(2 * m, np.int64), float(params.volume_frac), False)
     ok = _index_tests(params, status, seen, evidence, mismatch, runner_up) == 0
     both = ok[0::2] & ok[1::2] & (offset[0::2] != offset[1::2])
     if not both.any():

@@ -320,7 +320,7 @@ def _region_histograms_loops(labels, relative, region, n_reg):
 
 
 @njit(cache=True, nogil=True)
-def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, cstart, npx, frac):
+def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, cstart, npx, frac, strengths=True):
     """The marker matched filter of :func:`gbscan.unwrap.index_regions` for every region, from
     :func:`region_histograms`: integer counts, the same sums as its ``np.correlate`` form.
 
@@ -344,7 +344,8 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, 
     the regions whose stripe margin is 1 (0 for the others): over the candidates inside the
     working volume that contradict one stripe more than the best, the fewest contradicting
     pixels of the strongest stripe that contradicts the candidate and not the best (how well
-    the one stripe that tells them apart is seen)."""
+    the one stripe that tells them apart is seen; all 0 when ``strengths`` is False: a caller
+    that scores many pseudo-regions and reads no strength, :func:`gbscan.unwrap.split_row`)."""
     n_reg = rmin.shape[0]
     n_st = is_marker.shape[0]
     status = np.zeros(n_reg, np.int64)
@@ -437,7 +438,7 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, 
         mismatch[k] = best_mis
         runner[k] = second
         stripes[k] = fewest - best_bad if fewest < big else big
-        if stripes[k] == 1:
+        if strengths and stripes[k] == 1:
             weakest = big
             for i in range(n_cand):
                 if cand_A[i] == best_A or cand_bad[i] != best_bad + 1 or \
