@@ -162,7 +162,8 @@ class UnwrapParams:
         ``index_margin_stripes`` is indexed too when that one stripe is seen well: for every
         candidate contradicting one stripe more than the best, a stripe it contradicts and the best
         does not shows at least this many contradicting pixels (``RegionIndex.stripe_strength``;
-        0: never; why :data:`STRONG_OK`).  A misread stripe is a few pixels; one that a welded
+        0: never; why :data:`STRONG_OK`; the strength is measured for a margin of 1, so the rule
+        acts with ``index_margin_stripes`` 2, the default).  A misread stripe is a few pixels; one that a welded
         strip of another surface brings in is as large as the strip's marker.  Over the thirteen
         sweep sets (431 frames, ``index_margin_stripes`` off so that every scoring is seen: 1 472
         scorings of ambiguous regions with a stripe margin of 1), the 11 at a wrong offset were

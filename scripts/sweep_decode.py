@@ -66,8 +66,9 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 
 #: the frame sets of ``--set``: the sweep's 48 scenes, the same objects under room light, the clean
 #: preset, other baselines, the rig mirrored, the multi-object scene's panel plain, other layouts of
-#: it, and six sets of frames of it kept out of the rules' making (the first two each spent by a
-#: rule of the thirtieth session, the third to fifth by the thirty-first session's piece rules)
+#: it, seven sets of frames of it kept out of the rules' making (the first two each spent by a
+#: rule of the thirtieth session, the third to fifth by the thirty-first session's piece rules, the
+#: sixth by the thirty-second session's strong-stripe threshold) and a set of faces kept out too
 SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels", "layouts", "holdout", "holdout2",
         "holdout3", "holdout4", "holdout5", "holdout6", "holdout7", "faces")
 
@@ -282,9 +283,10 @@ FACE_FRANS = ((585.0, -25.0, None), (640.0, 30.0, 1.4), (695.0, -10.0, None), (7
 
 
 def _face_set(S, quick: bool) -> list:
-    # held out (thirty-second session, made after every rule): the synthetic head and the real
-    # face at 575-805 mm, turned up to 35 degrees, some before a wall -- the scanner's showcase at
-    # poses and distances no rule was tuned on (the other sets hold 650-700 mm heads and faces)
+    # held out (thirty-second session, made before that session's rule ran): the synthetic head
+    # and the real face at 575-805 mm, turned up to 35 degrees, some before a wall -- the
+    # scanner's showcase at poses and distances no rule was tuned on (the other sets hold 620-700
+    # mm heads and faces)
     out = []
     for d, yaw, pitch, w in FACE_HEADS:
         for seed in (20, 21):
