@@ -42,7 +42,7 @@ The first call compiles (a few seconds, cached on disk afterwards); tests and be
 numba's on-disk cache is checked against the calling kernel's own file only: after editing a
 kernel that a kernel in *another* file calls (``segments._vertical_votes_sorted`` from ``linking``;
 the helpers of ``_common``: ``run_starts``, ``fill_row``, ``copy_row``, ``ctz64``, ``contradicts``,
-``fit_add``, ``fit_slope``, ``lower_bound``), delete
+``contradicting_px``, ``fit_add``, ``fit_slope``, ``lower_bound``), delete
 ``gbscan/kernels/__pycache__`` (or touch the caller's file), or the caller keeps running the old code.
 """
 from __future__ import annotations

@@ -29,6 +29,16 @@ def contradicts(lab, marker):
 
 
 @njit(cache=True, nogil=True)
+def contradicting_px(a, c, g, is_marker):
+    """How many of a stripe's pixels (``c`` cyan, ``g`` green or blue) contradict absolute stripe
+    ``a`` of a pattern whose marker stripes are ``is_marker`` (n_stripes,) bool: all of them
+    outside the pattern, the green / blue ones on a marker, the cyan ones on a plain stripe."""
+    if a < 0 or a >= is_marker.shape[0]:
+        return c + g
+    return g if is_marker[a] else c
+
+
+@njit(cache=True, nogil=True)
 def fill_row(o, val):
     """``o[:] = val`` as a loop numba vectorises (a row slice)."""
     for u in range(o.size):

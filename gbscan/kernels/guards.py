@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._common import contradicts, ctz64, fill_row, fit_add, fit_slope, lower_bound
+from ._common import BLUE, CYAN, GREEN, contradicting_px, contradicts, ctz64, fill_row, fit_add, fit_slope, lower_bound
 
 
 # -- decoder: rim guard (gbscan.decode.rim_guard) --------------------------------------------------
@@ -1554,9 +1554,9 @@ def piece_check(mask, column, stripe, conf, labels, region, is_marker, n_regions
                 j = pr[t]
                 for u in range(r0[j], r1[j] + 1):
                     lab = labels[rr[j], u]
-                    if lab == 3:
+                    if lab == CYAN:
                         n_c[stripe[rr[j], u] - s0] += 1
-                    elif lab == 1 or lab == 2:
+                    elif lab == GREEN or lab == BLUE:
                         n_p[stripe[rr[j], u] - s0] += 1
             best = big
             # shifts keeping the piece's stripes no further than 2 beyond the pattern's ends (the
@@ -1566,13 +1566,7 @@ def piece_check(mask, column, stripe, conf, labels, region, is_marker, n_regions
                     continue
                 mis = 0
                 for jj in range(span):
-                    a = s0 + jj + shift
-                    if a < 0 or a >= n_st:
-                        mis += n_c[jj] + n_p[jj]
-                    elif is_marker[a]:
-                        mis += n_p[jj]
-                    else:
-                        mis += n_c[jj]
+                    mis += contradicting_px(s0 + jj + shift, n_c[jj], n_p[jj], is_marker)
                 best = min(best, mis)
             margin = best - own
             drop_a = contra and margin <= -min_px

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._common import BLUE, CYAN, GREEN, NONE, copy_row, ctz64, fill_row
+from ._common import BLUE, CYAN, GREEN, NONE, contradicting_px, copy_row, ctz64, fill_row
 
 
 @njit(cache=True, nogil=True)
@@ -400,19 +400,13 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, 
                 a = A + j
                 c = n_c[b0 + j]
                 g = n_g[b0 + j]
-                if a < 0 or a >= n_st:      # outside: not a marker (cyan mismatches), O = 1
-                    mis += c + g
-                    if c + g >= min_marker_px:
-                        bad += 1
-                elif is_marker[a]:
-                    mis += g
+                # outside the pattern every observation mismatches (O = 1)
+                px = contradicting_px(a, c, g, is_marker)
+                mis += px
+                if px >= min_marker_px:
+                    bad += 1
+                if 0 <= a < n_st and is_marker[a]:
                     exp += c + g
-                    if g >= min_marker_px:
-                        bad += 1
-                else:
-                    mis += c
-                    if c >= min_marker_px:
-                        bad += 1
             cand_A[n_cand] = A
             cand_mis[n_cand] = mis
             cand_bad[n_cand] = bad
@@ -446,22 +440,14 @@ def score_offsets(rmin, rmax, start, n_c, n_g, is_marker, min_marker_px, cover, 
                     continue
                 strongest = 0
                 for j in range(span):
-                    px_c = _contradicting_px(cand_A[i] + j, n_c[b0 + j], n_g[b0 + j], is_marker)
+                    px_c = contradicting_px(cand_A[i] + j, n_c[b0 + j], n_g[b0 + j], is_marker)
                     if px_c >= min_marker_px and \
-                            _contradicting_px(best_A + j, n_c[b0 + j], n_g[b0 + j], is_marker) < min_marker_px:
+                            contradicting_px(best_A + j, n_c[b0 + j], n_g[b0 + j], is_marker) < min_marker_px:
                         strongest = max(strongest, px_c)
                 weakest = min(weakest, strongest)
             strength[k] = weakest if weakest < big else 0
     return status, seen, offset, evidence, mismatch, runner, stripes, strength
 
-
-@njit(cache=True, nogil=True)
-def _contradicting_px(a, c, g, is_marker):
-    # the pixels of a stripe (c cyan, g green / blue) that contradict absolute stripe a: anything
-    # outside the pattern, green / blue on a marker, cyan on a plain stripe
-    if a < 0 or a >= is_marker.shape[0]:
-        return c + g
-    return g if is_marker[a] else c
 
 
 @njit(cache=True, nogil=True)
