@@ -478,6 +478,17 @@ class DecodeParams:
         a sphere at 890 mm, 2 407) and 18 327 right ones, 17 051 (0.04 % of the 39.5 M reported)
         in pieces no marker of their own fixes; the pieces something continues, 59 wrong pixels
         and 189 457 right.
+    piece_linked : a region linked through its neighbours' columns (``unwrap.link_votes``) owes
+        its index to them: for ``piece_alone`` its body continues a piece only where reported
+        pixels outside every piece continue the body too, and a linked body that a piece masked
+        so continued, and nothing else, is checked as a piece after it, by both tests.  The
+        case (thirty-third session, the eighth held-out set, ``--set holdout8``, which it
+        spent): the multi-object scene at 695 mm with its wall at 1 098 mm.  Below a sphere the
+        wall's rows 298-302 were welded onto the sphere's region along its slanted silhouette, 28
+        stripes off, its markers landing on the sphere's (49 on 77); the guards cut the strip off
+        the sphere, but the wall above it, right of the silhouette (650 px, no markers to fix
+        it), had been linked through the strip's columns, and each then continued the other:
+        2 545 wrong pixels on three frames.  See :func:`piece_check`.
     resample : decode the frame shrunk by this factor (the linear mean over each pixel's area, as a
         camera with larger pixels sees it; ``cv2.INTER_AREA``) and expand the result back to every
         pixel (:func:`decode`).  0, the default: frames whose stripes span more than
@@ -599,6 +610,7 @@ class DecodeParams:
     sandwich_rows: int = 32
     piece_check_px: int = 3
     piece_alone: bool = True
+    piece_linked: bool = True
     resample: float = 0.0
     confidence_spread_px: float = 0.15
     crop: bool = True
@@ -674,7 +686,7 @@ class DecodeParams:
         dr = self.rim_end_dim_ratio
         if isinstance(dr, bool) or not isinstance(dr, (int, float)) or not 0 <= dr <= 1:
             bad("rim_end_dim_ratio", f"must be a brightness ratio in [0, 1] (0: every end row masked), got {dr!r}")
-        for name in ("rim_guard_no_boundary", "join_transitions", "crop", "piece_alone"):
+        for name in ("rim_guard_no_boundary", "join_transitions", "crop", "piece_alone", "piece_linked"):
             if not isinstance(getattr(self, name), bool):
                 bad(name, f"must be True or False, got {getattr(self, name)!r}")
         cs = self.confidence_spread_px
@@ -1826,7 +1838,8 @@ def sandwich_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, con
 
 def piece_check(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confidence: np.ndarray,
                 labels: np.ndarray, region: np.ndarray, pattern: PatternSpec, params: DecodeParams,
-                counts: np.ndarray | None = None, n_regions: int | None = None) -> tuple[int, int]:
+                counts: np.ndarray | None = None, n_regions: int | None = None,
+                linked: np.ndarray | None = None) -> tuple[int, int]:
     """Mask ``UNINDEXED`` the pieces of a region cut off from its body whose index nothing but
     the body supports; returns their counts (by their own markers, for nothing continuing them).
 
@@ -1850,6 +1863,14 @@ def piece_check(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confid
       row end past at most ``link_gap_px`` unreported pixels) and its own colours do not favour
       its index over every other by ``min_marker_px`` pixels, one marker's worth: an island
       whose index is the body's word alone.
+
+    ``linked`` (n_regions,) bool, the regions indexed through their neighbours
+    (``params.piece_linked``; None: none): the body of such a region continues a piece only
+    where reported pixels outside every piece continue the body itself; a linked body nothing
+    else continues is tested as a piece after the pieces, where a piece they masked continued it
+    (a strip welded onto a region and the surface linked through it may support nothing but
+    each other); the other linked bodies are kept, as linked (the pixels that voted for them
+    masked by other rules since).
     """
     min_px = int(params.piece_check_px)
     fix_px = int(params.unwrap.min_marker_px) if params.piece_alone else 0
@@ -1861,9 +1882,12 @@ def piece_check(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confid
     n_reg = int(region.max()) + 1 if n_regions is None else int(n_regions)
     if n_reg <= 0:
         return 0, 0
+    vouch = np.ones(n_reg, np.bool_)
+    if linked is not None and params.piece_linked:
+        vouch[:min(n_reg, linked.size)] = ~linked[:n_reg]
     n_a, n_b = kernels.piece_check(mask, column, stripe, confidence, np.ascontiguousarray(labels, dtype=np.uint8),
                                    region, np.ascontiguousarray(pattern.is_marker(), dtype=np.bool_), n_reg, min_px,
-                                   fix_px, int(params.unwrap.link_gap_px), OK, UNINDEXED)
+                                   fix_px, int(params.unwrap.link_gap_px), OK, UNINDEXED, vouch)
     _unreported(counts, int(n_a) + int(n_b), UNINDEXED)
     return int(n_a), int(n_b)
 
@@ -2724,7 +2748,9 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
                         float(params.camera_gamma), guard_lit_rows(params))
     n_step = step_guard(img, mask, column, stripe, conf, region, params, counts)
     n_sandwich = sandwich_guard(mask, column, stripe, conf, region, pattern, params, counts)
-    n_piece, n_alone = piece_check(mask, column, stripe, conf, cls.labels, region, pattern, params, counts, n_reg)
+    linked = np.array([w == "linked" for w in idx.why], bool) if n_reg else None
+    n_piece, n_alone = piece_check(mask, column, stripe, conf, cls.labels, region, pattern, params, counts, n_reg,
+                                   linked)
     _unreported(counts, int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED)), ISOLATED)
     sigma = None
     floor = None

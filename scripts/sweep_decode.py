@@ -44,6 +44,8 @@ depth edges when there are any).
     python scripts/sweep_decode.py --cache DIR --set holdout5     # 32 frames more (one rule since)
     python scripts/sweep_decode.py --cache DIR --set holdout6     # 32 frames more, no rule made from them
     python scripts/sweep_decode.py --cache DIR --set holdout7     # 32 frames more (thirty-second session)
+    python scripts/sweep_decode.py --cache DIR --set holdout8     # 32 frames more (thirty-third session)
+    python scripts/sweep_decode.py --cache DIR --set holdout9     # 32 frames more (thirty-third session)
     python scripts/sweep_decode.py --cache DIR --set faces        # heads and real faces at 575-805 mm, turned (32)
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
@@ -70,7 +72,7 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 #: rule of the thirtieth session, the third to fifth by the thirty-first session's piece rules, the
 #: sixth by the thirty-second session's strong-stripe threshold) and a set of faces kept out too
 SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels", "layouts", "holdout", "holdout2",
-        "holdout3", "holdout4", "holdout5", "holdout6", "holdout7", "faces")
+        "holdout3", "holdout4", "holdout5", "holdout6", "holdout7", "holdout8", "holdout9", "faces")
 
 
 def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str, int, int, object]]:
@@ -267,6 +269,10 @@ HELD_OUT = {
     "holdout6": ((660.0, 735.0, 790.0, 860.0), (1.28, 1.48), 0.5, (12, 13), 0.65),
     # thirty-second session, made before any rule of that session was run on it
     "holdout7": ((645.0, 715.0, 805.0, 880.0), (1.36, 1.62), 0.45, (14, 15), 0.55),
+    # thirty-third session, made at its start, before holdout7's wrong pixels were looked into
+    "holdout8": ((585.0, 695.0, 765.0, 850.0), (1.32, 1.58), 0.6, (16, 17), 0.5),
+    # thirty-third session, made before the rule made from holdout8 was run on it
+    "holdout9": ((625.0, 690.0, 780.0, 865.0), (1.34, 1.5), 0.5, (18, 19), 0.6),
 }
 
 
@@ -586,7 +592,7 @@ def main(argv=None) -> int:
                          "(32 frames more each, at other depths, walls and albedos, made then; one rule was made "
                          "from each since), holdout4, holdout5, holdout6 (32 more each, made in the thirty-first "
                          "session; one rule was made from holdout4 and one from holdout5), holdout7 (32 more, "
-                         "thirty-second session), faces (held out too: the synthetic head at 575-785 mm turned "
+                         "thirty-second session), holdout8, holdout9 (32 more each, thirty-third session), faces (held out too: the synthetic head at 575-785 mm turned "
                          "up to 35 degrees and the real face at 585-805 mm, some before a wall; 32 frames with the "
                          "real face's mesh, 20 without)")
     ap.add_argument("--edges", action="store_true", help="also list regions wrong only on depth-edge pixels")

@@ -1406,16 +1406,16 @@ def _piece_runs(mask, region, ok_code, n_regions):
 
 
 @njit(cache=True, nogil=True)
-def _has_vote(cls, v, a, b, max_gap_px):
-    # whether a reported pixel outside every piece (cls 1) continues the piece run (v, a .. b) as
-    # kernels.link_votes reads continuity: two such pixels in line above or below one of its
-    # pixels (rows v -+ 1, v -+ 2), or along the row past at most max_gap_px unreported pixels
-    # beyond either end (the nearest such pixel q and q + 2 outward)
+def _has_vote(cls, v, a, b, max_gap_px, want=1):
+    # whether a reported pixel outside every piece (cls 1; or of class ``want``) continues the
+    # piece run (v, a .. b) as kernels.link_votes reads continuity: two such pixels in line above
+    # or below one of its pixels (rows v -+ 1, v -+ 2), or along the row past at most max_gap_px
+    # unreported pixels beyond either end (the nearest such pixel q and q + 2 outward)
     H, W = cls.shape
     for u in range(a, b + 1):
         for d in (-1, 1):
             q, q2 = v + d, v + 2 * d
-            if 0 <= q2 < H and cls[q, u] == 1 and cls[q2, u] == 1:
+            if 0 <= q2 < H and cls[q, u] == want and cls[q2, u] == want:
                 return True
     for d in (-1, 1):
         u = a if d < 0 else b
@@ -1423,17 +1423,19 @@ def _has_vote(cls, v, a, b, max_gap_px):
             q = u + d * k
             if q < 0 or q >= W or cls[v, q] == 2:
                 break
-            if cls[v, q] == 1:
+            if cls[v, q] == want:
                 q2 = q + 2 * d
-                if 0 <= q2 < W and cls[v, q2] == 1:
+                if 0 <= q2 < W and cls[v, q2] == want:
                     return True
+                break
+            if cls[v, q] != 0:
                 break
     return False
 
 
 @njit(cache=True, nogil=True)
 def piece_check(mask, column, stripe, conf, labels, region, is_marker, n_regions, min_px, alone_fix_px, max_gap_px,
-                ok_code, code):
+                ok_code, code, vouch):
     """Mask ``code`` the pieces of a region that its reported pixels leave apart from its body
     and whose index nothing but the region's other pixels supports.
 
@@ -1451,7 +1453,12 @@ def piece_check(mask, column, stripe, conf, labels, region, is_marker, n_regions
     most ``-min_px`` (another index fits it better), or (b) ``alone_fix_px`` > 0, no reported
     pixel outside every piece continues it (:func:`_has_vote`, the column-continuity votes of
     :func:`gbscan.kernels.link_votes` with ``max_gap_px``) and its margin is under
-    ``alone_fix_px`` (its own markers do not fix its index).  Returns (masked by (a), by (b)).
+    ``alone_fix_px`` (its own markers do not fix its index).  ``vouch`` (n_regions,) bool: False
+    for a region whose index is its neighbours' word (linked by column continuity): its body
+    continues a piece only where pixels outside every piece continue the body itself; such a
+    body that nothing outside every piece continues is tested as a piece after the pieces, by
+    both tests, where a piece they masked continued it (the two may have stood on each other
+    alone), and kept otherwise.  Returns (masked by (a), by (b)).
     """
     H, W = mask.shape
     if H == 0 or W == 0 or n_regions <= 0 or (min_px <= 0 and alone_fix_px <= 0):
@@ -1497,19 +1504,20 @@ def piece_check(mask, column, stripe, conf, labels, region, is_marker, n_regions
         g = rg[j]
         if body[g] < 0:
             body[g] = j
+            pieces += not vouch[g]   # a linked region's body is a piece to the look
         else:
             pieces += 1
             if size[j] > size[body[g]]:
                 body[g] = j
     if pieces == 0:
         return 0, 0
-    # pixel classes for the continuity test: 1 reported outside every piece, 2 in a piece
-    # and the piece runs, grouped by piece
+    # pixel classes for the continuity test: 1 reported outside every piece, 2 in a piece (a
+    # linked region's body too) and the piece runs, grouped by piece
     cls = np.zeros((H, W), np.uint8)
     pr = np.empty(n, np.int64)
     n_piece_runs = 0
     for j in range(n):
-        piece = root[j] != body[rg[j]]
+        piece = root[j] != body[rg[j]] or not vouch[rg[j]]
         if piece:
             pr[n_piece_runs] = j
             n_piece_runs += 1
@@ -1518,73 +1526,142 @@ def piece_check(mask, column, stripe, conf, labels, region, is_marker, n_regions
             cls[rr[j], u] = c
     pr = pr[:n_piece_runs]
     pr = pr[np.argsort(root[pr], kind="mergesort")]
+    # the pieces as ranges [first, end) of pr
+    n_pieces = 0
+    first = np.empty(n_piece_runs + 1, np.int64)
+    for t in range(n_piece_runs):
+        if t == 0 or root[pr[t]] != root[pr[t - 1]]:
+            first[n_pieces] = t
+            n_pieces += 1
+    first[n_pieces] = n_piece_runs
+    # a linked region's body that reported pixels outside every piece continue vouches, as they
+    # do, for the pieces beside it (its index has support besides them); the others vouch for
+    # no piece (nor do pieces, a linked region's as any other's)
+    later = np.zeros(n_pieces, np.bool_)
+    for p in range(n_pieces):
+        s, e = first[p], first[p + 1]
+        g = rg[pr[s]]
+        later[p] = not vouch[g] and root[pr[s]] == body[g] and \
+            not _runs_have_vote(pr, s, e, rr, r0, r1, cls, max_gap_px)
+    for p in range(n_pieces):
+        s, e = first[p], first[p + 1]
+        g = rg[pr[s]]
+        if not vouch[g] and root[pr[s]] == body[g] and not later[p]:
+            _set_cls(pr, s, e, rr, r0, r1, cls, 1)
+    # the pieces (not bodies), each tested as they all stand (a verdict waits for the loop's end
+    # to change a class); then the bodies of linked regions that nothing outside every piece
+    # continues, where a piece just masked continued them (the two stood on each other alone),
+    # beside what stands then; the other linked bodies are kept, as linked (the pixels that
+    # voted for them masked by other rules since)
+    verdict = np.zeros(n_pieces, np.int64)
     n_a = 0
     n_b = 0
-    big = np.iinfo(np.int64).max // 4
-    s = 0
-    while s < n_piece_runs:
-        e = s
-        while e < n_piece_runs and root[pr[e]] == root[pr[s]]:
-            e += 1
-        s0 = n_st
-        s1 = -1
-        own = 0
-        for t in range(s, e):
-            j = pr[t]
-            for u in range(r0[j], r1[j] + 1):
-                st = stripe[rr[j], u]
-                s0 = min(s0, st)
-                s1 = max(s1, st)
-                if 0 <= st < n_st and contradicts(labels[rr[j], u], is_marker[st]):
-                    own += 1
-        contra = min_px > 0 and own >= min_px
-        alone = False
-        if alone_fix_px > 0:
-            alone = True
+    for phase in range(2):
+        for p in range(n_pieces):
+            s, e = first[p], first[p + 1]
+            is_body = root[pr[s]] == body[rg[pr[s]]]
+            if (phase == 0 and is_body) or (phase == 1 and not later[p]):
+                continue
+            verdict[p] = _piece_verdict(pr, s, e, rr, r0, r1, stripe, labels, is_marker, min_px, alone_fix_px,
+                                        cls, max_gap_px)
+            if verdict[p] == 0:
+                continue
+            k = 0
             for t in range(s, e):
                 j = pr[t]
-                if _has_vote(cls, rr[j], r0[j], r1[j], max_gap_px):
-                    alone = False
-                    break
-        if (contra or alone) and s1 >= 0:
-            span = s1 - s0 + 1
-            n_c = np.zeros(span, np.int64)    # cyan pixels per stripe of the piece
-            n_p = np.zeros(span, np.int64)    # green / blue pixels per stripe
-            for t in range(s, e):
-                j = pr[t]
+                v = rr[j]
                 for u in range(r0[j], r1[j] + 1):
-                    lab = labels[rr[j], u]
-                    if lab == CYAN:
-                        n_c[stripe[rr[j], u] - s0] += 1
-                    elif lab == GREEN or lab == BLUE:
-                        n_p[stripe[rr[j], u] - s0] += 1
-            best = big
-            # shifts keeping the piece's stripes no further than 2 beyond the pattern's ends (the
-            # indexing's candidates), the colours' parity kept
-            for shift in range(-s1 - 2, n_st + 2 - s0 + 1):
-                if shift == 0 or shift % 2 != 0:
-                    continue
-                mis = 0
-                for jj in range(span):
-                    mis += contradicting_px(s0 + jj + shift, n_c[jj], n_p[jj], is_marker)
-                best = min(best, mis)
-            margin = best - own
-            drop_a = contra and margin <= -min_px
-            drop_b = alone and margin < alone_fix_px
-            if drop_a or drop_b:
-                k = 0
-                for t in range(s, e):
-                    j = pr[t]
-                    v = rr[j]
-                    for u in range(r0[j], r1[j] + 1):
-                        mask[v, u] = np.uint8(code)
-                        column[v, u] = np.nan
-                        stripe[v, u] = -1
-                        conf[v, u] = 0.0
-                        k += 1
-                if drop_a:
-                    n_a += k
-                else:
-                    n_b += k
-        s = e
+                    mask[v, u] = np.uint8(code)
+                    column[v, u] = np.nan
+                    stripe[v, u] = -1
+                    conf[v, u] = 0.0
+                    k += 1
+            if verdict[p] == 1:
+                n_a += k
+            else:
+                n_b += k
+        if phase == 0:
+            if not later.any():
+                break
+            # the look: the pieces just masked as class 3
+            for p in range(n_pieces):
+                if verdict[p] != 0:
+                    _set_cls(pr, first[p], first[p + 1], rr, r0, r1, cls, 3)
+            for p in range(n_pieces):
+                if later[p]:
+                    later[p] = _runs_have_vote(pr, first[p], first[p + 1], rr, r0, r1, cls, max_gap_px, 3)
+            for p in range(n_pieces):
+                s, e = first[p], first[p + 1]
+                if verdict[p] != 0:
+                    _set_cls(pr, s, e, rr, r0, r1, cls, 0)         # masked: a gap
+                elif vouch[rg[pr[s]]]:
+                    _set_cls(pr, s, e, rr, r0, r1, cls, 1)         # kept: vouches for the bodies next
     return n_a, n_b
+
+
+@njit(cache=True, nogil=True)
+def _set_cls(pr, s, e, rr, r0, r1, cls, c):
+    # the class of the piece runs pr[s:e]
+    for t in range(s, e):
+        j = pr[t]
+        for u in range(r0[j], r1[j] + 1):
+            cls[rr[j], u] = c
+
+
+@njit(cache=True, nogil=True)
+def _runs_have_vote(pr, s, e, rr, r0, r1, cls, max_gap_px, want=1):
+    # whether pixels of class ``want`` continue one of the piece runs pr[s:e] (_has_vote)
+    for t in range(s, e):
+        j = pr[t]
+        if _has_vote(cls, rr[j], r0[j], r1[j], max_gap_px, want):
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def _piece_verdict(pr, s, e, rr, r0, r1, stripe, labels, is_marker, min_px, alone_fix_px, cls, max_gap_px):
+    # piece_check's tests on the piece of runs pr[s:e]: 0 kept, 1 masked by its own markers (a),
+    # 2 masked for nothing continuing it (b)
+    n_st = is_marker.shape[0]
+    s0 = n_st
+    s1 = -1
+    own = 0
+    for t in range(s, e):
+        j = pr[t]
+        for u in range(r0[j], r1[j] + 1):
+            st = stripe[rr[j], u]
+            s0 = min(s0, st)
+            s1 = max(s1, st)
+            if 0 <= st < n_st and contradicts(labels[rr[j], u], is_marker[st]):
+                own += 1
+    contra = min_px > 0 and own >= min_px
+    alone = alone_fix_px > 0 and not _runs_have_vote(pr, s, e, rr, r0, r1, cls, max_gap_px)
+    if not (contra or alone) or s1 < 0:
+        return 0
+    span = s1 - s0 + 1
+    n_c = np.zeros(span, np.int64)    # cyan pixels per stripe of the piece
+    n_p = np.zeros(span, np.int64)    # green / blue pixels per stripe
+    for t in range(s, e):
+        j = pr[t]
+        for u in range(r0[j], r1[j] + 1):
+            lab = labels[rr[j], u]
+            if lab == CYAN:
+                n_c[stripe[rr[j], u] - s0] += 1
+            elif lab == GREEN or lab == BLUE:
+                n_p[stripe[rr[j], u] - s0] += 1
+    best = np.iinfo(np.int64).max // 4
+    # shifts keeping the piece's stripes no further than 2 beyond the pattern's ends (the
+    # indexing's candidates), the colours' parity kept
+    for shift in range(-s1 - 2, n_st + 2 - s0 + 1):
+        if shift == 0 or shift % 2 != 0:
+            continue
+        mis = 0
+        for jj in range(span):
+            mis += contradicting_px(s0 + jj + shift, n_c[jj], n_p[jj], is_marker)
+        best = min(best, mis)
+    margin = best - own
+    if contra and margin <= -min_px:
+        return 1
+    if alone and margin < alone_fix_px:
+        return 2
+    return 0
