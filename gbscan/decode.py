@@ -485,7 +485,7 @@ class DecodeParams:
         case (thirty-third session, the eighth held-out set, ``--set holdout8``, which it
         spent): the multi-object scene at 695 mm with its wall at 1 098 mm.  Below a sphere the
         wall's rows 298-302 were welded onto the sphere's region along its slanted silhouette, 28
-        stripes off, its markers landing on the sphere's (49 on 77); the guards cut the strip off
+        stripes off, its marker (77) landing on the sphere's (49); the guards cut the strip off
         the sphere, but the wall above it, right of the silhouette (650 px, no markers to fix
         it), had been linked through the strip's columns, and each then continued the other:
         2 545 wrong pixels on three frames.  See :func:`piece_check`.
