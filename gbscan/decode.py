@@ -2683,6 +2683,7 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
 
     rim_done = None
     late_spans = None
+    linked = None   # (n_reg,) bool, the regions the linking indexed (None: it indexed none)
     if params.unwrap.link_votes > 0 and pattern.markers and idx.indexed.any() and \
             (un.isolated.any() or not idx.indexed.all()):
         # every component's columns: the small / unindexed ones may be indexed through neighbours
@@ -2748,7 +2749,6 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
                         float(params.camera_gamma), guard_lit_rows(params))
     n_step = step_guard(img, mask, column, stripe, conf, region, params, counts)
     n_sandwich = sandwich_guard(mask, column, stripe, conf, region, pattern, params, counts)
-    linked = np.array([w == "linked" for w in idx.why], bool) if n_reg else None
     n_piece, n_alone = piece_check(mask, column, stripe, conf, cls.labels, region, pattern, params, counts, n_reg,
                                    linked)
     _unreported(counts, int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED)), ISOLATED)

@@ -42,9 +42,9 @@ depth edges when there are any).
     python scripts/sweep_decode.py --cache DIR --set holdout3     # 32 frames more (two rules since)
     python scripts/sweep_decode.py --cache DIR --set holdout4     # 32 frames more (one rule since)
     python scripts/sweep_decode.py --cache DIR --set holdout5     # 32 frames more (one rule since)
-    python scripts/sweep_decode.py --cache DIR --set holdout6     # 32 frames more, no rule made from them
+    python scripts/sweep_decode.py --cache DIR --set holdout6     # 32 frames more (one rule since)
     python scripts/sweep_decode.py --cache DIR --set holdout7     # 32 frames more (thirty-second session)
-    python scripts/sweep_decode.py --cache DIR --set holdout8     # 32 frames more (thirty-third session)
+    python scripts/sweep_decode.py --cache DIR --set holdout8     # 32 frames more (thirty-third session; one rule since)
     python scripts/sweep_decode.py --cache DIR --set holdout9     # 32 frames more (thirty-third session)
     python scripts/sweep_decode.py --cache DIR --set faces        # heads and real faces at 575-805 mm, turned (32)
 
@@ -68,9 +68,10 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 
 #: the frame sets of ``--set``: the sweep's 48 scenes, the same objects under room light, the clean
 #: preset, other baselines, the rig mirrored, the multi-object scene's panel plain, other layouts of
-#: it, seven sets of frames of it kept out of the rules' making (the first two each spent by a
+#: it, nine sets of frames of it kept out of the rules' making (the first two each spent by a
 #: rule of the thirtieth session, the third to fifth by the thirty-first session's piece rules, the
-#: sixth by the thirty-second session's strong-stripe threshold) and a set of faces kept out too
+#: sixth by the thirty-second session's strong-stripe threshold, the eighth by the thirty-third
+#: session's ``DecodeParams.piece_linked``) and a set of faces kept out too
 SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels", "layouts", "holdout", "holdout2",
         "holdout3", "holdout4", "holdout5", "holdout6", "holdout7", "holdout8", "holdout9", "faces")
 
@@ -592,7 +593,8 @@ def main(argv=None) -> int:
                          "(32 frames more each, at other depths, walls and albedos, made then; one rule was made "
                          "from each since), holdout4, holdout5, holdout6 (32 more each, made in the thirty-first "
                          "session; one rule was made from holdout4 and one from holdout5), holdout7 (32 more, "
-                         "thirty-second session), holdout8, holdout9 (32 more each, thirty-third session), faces (held out too: the synthetic head at 575-785 mm turned "
+                         "thirty-second session), holdout8, holdout9 (32 more each, thirty-third session; one rule was "
+                         "made from holdout8), faces (held out too: the synthetic head at 575-785 mm turned "
                          "up to 35 degrees and the real face at 585-805 mm, some before a wall; 32 frames with the "
                          "real face's mesh, 20 without)")
     ap.add_argument("--edges", action="store_true", help="also list regions wrong only on depth-edge pixels")
