@@ -489,6 +489,21 @@ class DecodeParams:
         the sphere, but the wall above it, right of the silhouette (650 px, no markers to fix
         it), had been linked through the strip's columns, and each then continued the other:
         2 545 wrong pixels on three frames.  See :func:`piece_check`.
+    piece_jump_px : the pieces are also cut where a region's projector column jumps along the
+        stripes by more than this many projector px past the along-stripe blur (0: never): a
+        line fitted to each side, ``piece_jump_rows`` rows away, and the two not meeting between
+        (:func:`gbscan.kernels.jump_flags`; a crease or a curve makes them meet, a depth edge
+        does not).  What such a cut leaves apart is tested as a piece (above), and masked with
+        the rows the blur mixed where it fails, unless it hangs between two such cuts inside its
+        surface (a face's eyelids and lips; :func:`gbscan.kernels.jump_pieces`).  The case
+        (thirty-fourth session, the tenth held-out set, ``--set holdout10``, which it spent): the
+        multi-object scene at 840 mm with its wall at 1 151 mm.  Below the panel's lower edge a
+        pocket of the wall, between an object's silhouette and a shadow, joined the panel's
+        region across the edge, 14 stripes off, its one marker (123) landing on the panel's (109):
+        the stripes line up but the columns jump 3-4 projector px, blurred over 6 rows; 779-829
+        wrong pixels on each of four frames.  See :func:`piece_check`.
+    piece_jump_rows : rows either side of a pixel :func:`gbscan.kernels.jump_flags` leaves to the
+        blur before each side's ``JUMP_FIT_ROWS`` fitted rows.
     resample : decode the frame shrunk by this factor (the linear mean over each pixel's area, as a
         camera with larger pixels sees it; ``cv2.INTER_AREA``) and expand the result back to every
         pixel (:func:`decode`).  0, the default: frames whose stripes span more than
@@ -611,6 +626,8 @@ class DecodeParams:
     piece_check_px: int = 3
     piece_alone: bool = True
     piece_linked: bool = True
+    piece_jump_px: float = 1.5
+    piece_jump_rows: int = 3
     resample: float = 0.0
     confidence_spread_px: float = 0.15
     crop: bool = True
@@ -689,6 +706,12 @@ class DecodeParams:
         for name in ("rim_guard_no_boundary", "join_transitions", "crop", "piece_alone", "piece_linked"):
             if not isinstance(getattr(self, name), bool):
                 bad(name, f"must be True or False, got {getattr(self, name)!r}")
+        pj = self.piece_jump_px
+        if isinstance(pj, bool) or not isinstance(pj, (int, float)) or not 0 <= pj < math.inf:
+            bad("piece_jump_px", f"must be a column jump in projector px >= 0 (0: never), got {pj!r}")
+        pr = self.piece_jump_rows
+        if isinstance(pr, bool) or not float(pr).is_integer() or int(pr) < 1:
+            bad("piece_jump_rows", f"must be a whole number of rows >= 1, got {pr!r}")
         cs = self.confidence_spread_px
         if isinstance(cs, bool) or not isinstance(cs, (int, float)) or not 0 <= cs < math.inf:
             bad("confidence_spread_px", f"must be a column error in projector px >= 0 (0: off), got {cs!r}")
@@ -1836,10 +1859,17 @@ def sandwich_guard(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, con
     return n
 
 
+#: piece_check's jump cut (``DecodeParams.piece_jump_px``): rows fitted on each side, the fewest
+#: columns flagged within 4 px for a line, and how far a cut reaches along a longer stretch (px)
+JUMP_FIT_ROWS = 4
+JUMP_MIN_COLS = 3
+JUMP_REACH_PX = 8
+
+
 def piece_check(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confidence: np.ndarray,
                 labels: np.ndarray, region: np.ndarray, pattern: PatternSpec, params: DecodeParams,
                 counts: np.ndarray | None = None, n_regions: int | None = None,
-                linked: np.ndarray | None = None) -> tuple[int, int]:
+                linked: np.ndarray | None = None, stats: dict | None = None) -> tuple[int, int]:
     """Mask ``UNINDEXED`` the pieces of a region cut off from its body whose index nothing but
     the body supports; returns their counts (by their own markers, for nothing continuing them).
 
@@ -1871,6 +1901,17 @@ def piece_check(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confid
     (a strip welded onto a region and the surface linked through it may support nothing but
     each other); the other linked bodies are kept, as linked (the pixels that voted for them
     masked by other rules since).
+
+    ``params.piece_jump_px`` > 0: the reported pixels around a line where a region's column jumps
+    along the stripes (:func:`gbscan.kernels.jump_flags`, :func:`gbscan.kernels.jump_band`) join
+    nothing either.  Two surfaces meeting at a horizontal depth edge weld where their stripes line
+    up (an even number of stripes apart) and their markers may land on each other, so nothing in
+    the colours parts them; the column still jumps there, by the two surfaces' disparity modulo
+    two stripes.  The tests above run with the line's pixels taken out; what they then mask that
+    they did not without (:func:`gbscan.kernels.jump_pieces`) is masked, with the line's pixels
+    beside it (the rows the blur mixed, "rim"), unless it hangs between two such lines (inside a
+    surface: a face's eyelids).  The line's other pixels stay reported.  ``stats``, when given,
+    gets ``piece_jump_px`` (pixels so masked) and ``piece_jump_band_px`` (line pixels masked).
     """
     min_px = int(params.piece_check_px)
     fix_px = int(params.unwrap.min_marker_px) if params.piece_alone else 0
@@ -1885,10 +1926,38 @@ def piece_check(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confid
     vouch = np.ones(n_reg, np.bool_)
     if linked is not None and params.piece_linked:
         vouch[:min(n_reg, linked.size)] = ~linked[:n_reg]
-    n_a, n_b = kernels.piece_check(mask, column, stripe, confidence, np.ascontiguousarray(labels, dtype=np.uint8),
-                                   region, np.ascontiguousarray(pattern.is_marker(), dtype=np.bool_), n_reg, min_px,
-                                   fix_px, int(params.unwrap.link_gap_px), OK, UNINDEXED, vouch)
+    labels = np.ascontiguousarray(labels, dtype=np.uint8)
+    is_marker = np.ascontiguousarray(pattern.is_marker(), dtype=np.bool_)
+    gap = int(params.unwrap.link_gap_px)
+    n_band = 0
+    if float(params.piece_jump_px) > 0:
+        k = int(params.piece_jump_rows)
+        flags, row_n = kernels.jump_flags(mask, column, region, k, JUMP_FIT_ROWS, float(params.piece_jump_px), OK)
+        if row_n.any():
+            band, n_band = kernels.jump_band(mask, region, flags, row_n, JUMP_MIN_COLS, JUMP_REACH_PX, OK)
+    if n_band:
+        # the tests with the line's pixels taken out, on copies
+        m2 = mask.copy()
+        m2[band] = RIM
+        kernels.piece_check(m2, column.copy(), stripe.copy(), confidence.copy(), labels, region, is_marker, n_reg,
+                            min_px, fix_px, gap, OK, UNINDEXED, vouch)
+    n_a, n_b = kernels.piece_check(mask, column, stripe, confidence, labels, region, is_marker, n_reg, min_px,
+                                   fix_px, gap, OK, UNINDEXED, vouch)
     _unreported(counts, int(n_a) + int(n_b), UNINDEXED)
+    n_j = n_jb = 0
+    if n_band:
+        failed = (m2 == UNINDEXED) & (mask == OK)
+        rows = np.flatnonzero(failed.any(axis=1))
+        if rows.size:
+            # the rows around what the cut lost (its lines within near rows of it)
+            near = int(params.piece_jump_rows) + 1
+            a, b = max(int(rows[0]) - near - 1, 0), int(rows[-1]) + near + 2
+            n_j, n_jb = kernels.jump_pieces(mask[a:b], column[a:b], stripe[a:b], confidence[a:b], failed[a:b],
+                                            band[a:b], near, OK, UNINDEXED, RIM)
+        _unreported(counts, int(n_j), UNINDEXED)
+        _unreported(counts, int(n_jb), RIM)
+    if stats is not None:
+        stats["piece_jump_px"], stats["piece_jump_band_px"] = int(n_j), int(n_jb)
     return int(n_a), int(n_b)
 
 
@@ -2749,8 +2818,9 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
                         float(params.camera_gamma), guard_lit_rows(params))
     n_step = step_guard(img, mask, column, stripe, conf, region, params, counts)
     n_sandwich = sandwich_guard(mask, column, stripe, conf, region, pattern, params, counts)
+    jump = {}
     n_piece, n_alone = piece_check(mask, column, stripe, conf, cls.labels, region, pattern, params, counts, n_reg,
-                                   linked)
+                                   linked, jump)
     _unreported(counts, int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED)), ISOLATED)
     sigma = None
     floor = None
@@ -2791,6 +2861,8 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
     stats["sandwich_px"] = int(n_sandwich)
     # pieces cut off from their region's body: by their own markers, for nothing continuing them
     stats["piece_px"], stats["piece_alone_px"] = int(n_piece), int(n_alone)
+    stats["piece_jump_px"] = jump.get("piece_jump_px", 0)
+    stats["piece_jump_band_px"] = jump.get("piece_jump_band_px", 0)
     stats["transitions_joined"] = int(joined.size)
     if ca is not None:
         stats["lateral_ca"] = dict(ca)

@@ -1665,3 +1665,234 @@ def _piece_verdict(pr, s, e, rr, r0, r1, stripe, labels, is_marker, min_px, alon
     if alone and margin < alone_fix_px:
         return 2
     return 0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def jump_flags(mask, column, region, gap_rows, fit_rows, tol_px, ok_code):
+    """(H, W) bool: reported pixels where their region's projector column jumps along the
+    stripes (down the image column), seen past the along-stripe blur; and (H,) int32, the flags
+    per row.
+
+    mask (H, W) uint8 reasons, column (H, W) float32 (projector px), region (H, W) int32.  For a
+    reported pixel (v, u) whose row neighbours are reported too, with ``fit_rows`` reported pixels
+    of its region at rows ``v - gap_rows - fit_rows + 1 .. v - gap_rows`` (above) and at
+    ``v + gap_rows .. v + gap_rows + fit_rows - 1`` (below), a line is fitted (least squares) to
+    each side's columns; the pixel is flagged when the two lines do not meet between the sides
+    (rows ``v - gap_rows .. v + gap_rows``) and stay more than ``tol_px`` apart there.  A smooth
+    surface's column is continuous: a kink (a crease, the stripes' lean changing) or a curve
+    makes the lines meet between the sides; where two surfaces meet at a horizontal depth edge
+    the column jumps by the two surfaces' disparity, which the unwrapping sees modulo two stripes
+    when their stripes line up.  A row at a time, its columns in vectorisable loops (float32):
+    ~0.25 ms a 640x480 frame."""
+    H, W = mask.shape
+    out = np.zeros((H, W), np.bool_)
+    row_n = np.zeros(H, np.int32)
+    L = fit_rows
+    k = gap_rows
+    if L < 2 or k < 0 or H < 2 * (k + L) - 1 or W < 3:
+        return out, row_n
+    xm = (L - 1) / 2.0
+    sxx = 0.0
+    for i in range(L):
+        sxx += (i - xm) * (i - xm)
+    inv_l = np.float32(1.0 / L)
+    inv_s = np.float32(1.0 / sxx)
+    xm32 = np.float32(xm)
+    far = np.float32(xm + 2 * k)
+    tol32 = np.float32(tol_px)
+    uok = np.uint8(ok_code)
+    # run[v, u]: reported pixels of one region ending at row v, counted up the column
+    run = np.zeros((H, W), np.int16)
+    for u in range(W):
+        m0 = mask[0, u]
+        run[0, u] = np.int16(1) if m0 == uok else np.int16(0)
+    for v in range(1, H):
+        for u in range(W):
+            m0 = mask[v, u]
+            m1 = mask[v - 1, u]
+            same = (m0 == uok) & (m1 == uok) & (region[v, u] == region[v - 1, u])
+            prev = run[v - 1, u]
+            run[v, u] = np.int16(prev + 1) if same else (np.int16(1) if m0 == uok else np.int16(0))
+    ma = np.empty(W, np.float32)
+    ba = np.empty(W, np.float32)
+    mb = np.empty(W, np.float32)
+    bb = np.empty(W, np.float32)
+    ok = np.zeros(W, np.bool_)
+    for v in range(k + L - 1, H - k - L + 1):
+        va = v - k           # the above side's last row
+        vb = v + k + L - 1   # the below side's last row
+        any_ok = False
+        for u in range(1, W - 1):
+            m = mask[v, u]
+            ml = mask[v, u - 1]
+            mr = mask[v, u + 1]
+            g = region[v, u]
+            o = (m == uok) & (ml == uok) & (mr == uok) & (run[va, u] >= L) & (run[vb, u] >= L) \
+                & (region[va, u] == g) & (region[v + k, u] == g)
+            ok[u] = o
+            any_ok |= o
+        if not any_ok:
+            continue
+        for u in range(W):
+            ma[u] = np.float32(0.0)
+            ba[u] = np.float32(0.0)
+            mb[u] = np.float32(0.0)
+            bb[u] = np.float32(0.0)
+        for i in range(L):
+            w = np.float32(i - xm)
+            ra = column[v - k - L + 1 + i]
+            rb = column[v + k + i]
+            for u in range(W):
+                ya = ra[u]
+                yb = rb[u]
+                ma[u] += ya
+                ba[u] += w * ya
+                mb[u] += yb
+                bb[u] += w * yb
+        orow = out[v]
+        n = 0
+        for u in range(1, W - 1):
+            # both lines at the sides' inner rows v - k and v + k (above's centre row is
+            # v - k - xm, below's v + k + xm)
+            a_m = ma[u] * inv_l
+            a_b = ba[u] * inv_s
+            b_m = mb[u] * inv_l
+            b_b = bb[u] * inv_s
+            r0 = (a_m + a_b * xm32) - (b_m - b_b * far)
+            r1 = (a_m + a_b * far) - (b_m - b_b * xm32)
+            f = ok[u] & (r0 * r1 > 0) & (min(abs(r0), abs(r1)) > tol32)
+            orow[u] = f
+            n += f
+        row_n[v] = n
+    return out, row_n
+
+
+@njit(cache=True, nogil=True)
+def jump_band(mask, region, flags, row_n, min_cols, reach_px, ok_code):
+    """(H, W) bool, the pixels a cut along a jump line takes out of the pieces, and their count.
+
+    A flagged pixel (:func:`jump_flags`) counts when flagged pixels lie in at least ``min_cols``
+    distinct columns within 4 px of its column (rows within 2 of its row): a line along the row,
+    not one column's noise.  Its row's stretch of reported pixels of its region is cut from it to
+    either end, or ``reach_px`` px when the end lies more than ``2 * reach_px`` px away.
+    ``row_n`` (H,) the flags per row (rows without any are skipped)."""
+    H, W = mask.shape
+    band = np.zeros((H, W), np.bool_)
+    uok = np.uint8(ok_code)
+    n = 0
+    for v in range(H):
+        if row_n[v] == 0:
+            continue
+        for u in range(W):
+            if not flags[v, u]:
+                continue
+            c = 0
+            for du in range(-4, 5):
+                q = u + du
+                if q < 0 or q >= W:
+                    continue
+                for dv in range(-2, 3):
+                    p = v + dv
+                    if 0 <= p < H and flags[p, q]:
+                        c += 1
+                        break
+            if c < min_cols:
+                continue
+            g = region[v, u]
+            a = u
+            while a > 0 and mask[v, a - 1] == uok and region[v, a - 1] == g:
+                a -= 1
+            b = u
+            while b < W - 1 and mask[v, b + 1] == uok and region[v, b + 1] == g:
+                b += 1
+            if u - a > 2 * reach_px:
+                a = u - reach_px
+            if b - u > 2 * reach_px:
+                b = u + reach_px
+            for x in range(a, b + 1):
+                if not band[v, x]:
+                    band[v, x] = True
+                    n += 1
+    return band, n
+
+
+@njit(cache=True, nogil=True)
+def jump_pieces(mask, column, stripe, conf, failed, band, near_rows, ok_code, code, band_code):
+    """Mask what the pieces cut along jump lines lost: ``failed`` (H, W) bool, reported pixels
+    the piece tests masked with the cut (:func:`jump_band`'s ``band`` taken out) and not without
+    it, joined along rows and columns into pieces.  A piece with a cut pixel right above one of
+    its pixels and one right below another hangs between two jump lines inside its surface (a
+    face's eyelid, its lips) and is kept; the others are masked ``code``, and the band pixels
+    within ``near_rows`` rows and 1 column of them ``band_code`` (the rows the blur mixed).  mask,
+    column, stripe, conf: updated in place (NaN / -1 / 0 where masked).  Returns (piece pixels,
+    band pixels) masked."""
+    H, W = mask.shape
+    n = 0
+    for v in range(H):
+        for u in range(W):
+            n += failed[v, u]
+    if n == 0:
+        return 0, 0
+    lab = np.full((H, W), -1, np.int32)
+    parent = np.empty(n, np.int64)
+    n = 0
+    for v in range(H):
+        for u in range(W):
+            if not failed[v, u]:
+                continue
+            parent[n] = n
+            lab[v, u] = np.int32(n)
+            if u > 0 and lab[v, u - 1] >= 0:
+                a = _find(parent, lab[v, u - 1])
+                b = _find(parent, n)
+                parent[max(a, b)] = min(a, b)
+            if v > 0 and lab[v - 1, u] >= 0:
+                a = _find(parent, lab[v - 1, u])
+                b = _find(parent, n)
+                parent[max(a, b)] = min(a, b)
+            n += 1
+    up = np.zeros(n, np.bool_)
+    down = np.zeros(n, np.bool_)
+    for v in range(H):
+        for u in range(W):
+            if lab[v, u] < 0:
+                continue
+            r = _find(parent, lab[v, u])
+            lab[v, u] = np.int32(r)
+            if v > 0 and band[v - 1, u]:
+                up[r] = True
+            if v < H - 1 and band[v + 1, u]:
+                down[r] = True
+    uok = np.uint8(ok_code)
+    drop = np.zeros((H, W), np.bool_)
+    n_piece = 0
+    for v in range(H):
+        for u in range(W):
+            r = lab[v, u]
+            if r < 0 or (up[r] and down[r]) or mask[v, u] != uok:
+                continue
+            drop[v, u] = True
+            mask[v, u] = code
+            column[v, u] = np.nan
+            stripe[v, u] = -1
+            conf[v, u] = 0.0
+            n_piece += 1
+    n_band = 0
+    if n_piece == 0:
+        return 0, 0
+    for v in range(H):
+        for u in range(W):
+            if not band[v, u] or mask[v, u] != uok:
+                continue
+            hit = False
+            for p in range(max(v - near_rows, 0), min(v + near_rows + 1, H)):
+                for q in range(max(u - 1, 0), min(u + 2, W)):
+                    if drop[p, q]:
+                        hit = True
+            if hit:
+                mask[v, u] = band_code
+                column[v, u] = np.nan
+                stripe[v, u] = -1
+                conf[v, u] = 0.0
+                n_band += 1
+    return n_piece, n_band
