@@ -501,7 +501,14 @@ class DecodeParams:
         pocket of the wall, between an object's silhouette and a shadow, joined the panel's
         region across the edge, 14 stripes off, its one marker (123) landing on the panel's (109):
         the stripes line up but the columns jump 3-4 projector px, blurred over 6 rows; 779-829
-        wrong pixels on each of four frames.  See :func:`piece_check`.
+        wrong pixels on each of four frames.  ``scripts/sweep_decode.py``, wrong pixels off depth
+        edges: that set 5 290 -> 2 072, holdout3 2 181 -> 408, holdout7 291 -> 26, holdout6
+        1 699 -> 1 480, holdout4 868 -> 327, holdout5 941 -> 747, layouts 6 -> 0, the others
+        unchanged (the eleventh set, made before the rule ran, 20); reported -0.0 to -0.07 points
+        over the sets, the real face's renders 0 to -1.8 (where its column falls smoothly 8 px
+        over 13 rows, which 4 + 4 rows cannot tell from a blurred jump).  4 rows to the blur and
+        2 px fixed the same and cost the faces more.  Cost ~0.35 ms a 640x480 frame.  See
+        :func:`piece_check`.
     piece_jump_rows : rows either side of a pixel :func:`gbscan.kernels.jump_flags` leaves to the
         blur before each side's ``JUMP_FIT_ROWS`` fitted rows.
     resample : decode the frame shrunk by this factor (the linear mean over each pixel's area, as a
@@ -1869,7 +1876,8 @@ JUMP_REACH_PX = 8
 def piece_check(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confidence: np.ndarray,
                 labels: np.ndarray, region: np.ndarray, pattern: PatternSpec, params: DecodeParams,
                 counts: np.ndarray | None = None, n_regions: int | None = None,
-                linked: np.ndarray | None = None, stats: dict | None = None) -> tuple[int, int]:
+                linked: np.ndarray | None = None, stats: dict | None = None,
+                rim_columns: tuple | None = None) -> tuple[int, int]:
     """Mask ``UNINDEXED`` the pieces of a region cut off from its body whose index nothing but
     the body supports; returns their counts (by their own markers, for nothing continuing them).
 
@@ -1911,7 +1919,10 @@ def piece_check(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confid
     they did not without (:func:`gbscan.kernels.jump_pieces`) is masked, with the line's pixels
     beside it (the rows the blur mixed, "rim"), unless it hangs between two such lines (inside a
     surface: a face's eyelids).  The line's other pixels stay reported.  ``stats``, when given,
-    gets ``piece_jump_px`` (pixels so masked) and ``piece_jump_band_px`` (line pixels masked).
+    gets ``jump_piece_px`` (pixels so masked) and ``jump_line_px`` (line pixels masked).
+    ``rim_columns``: ``(column_rel, reg_shift, reg_indexed)`` of the unwrapping and the indexing
+    (:func:`gbscan.kernels.finish_pixels`' inputs), to fit the pixels the rim rules masked too
+    (None: the reported pixels only).
     """
     min_px = int(params.piece_check_px)
     fix_px = int(params.unwrap.min_marker_px) if params.piece_alone else 0
@@ -1932,7 +1943,13 @@ def piece_check(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confid
     n_band = 0
     if float(params.piece_jump_px) > 0:
         k = int(params.piece_jump_rows)
-        flags, row_n = kernels.jump_flags(mask, column, region, k, JUMP_FIT_ROWS, float(params.piece_jump_px), OK)
+        if rim_columns is None:
+            rim_columns = (column, np.zeros(1, np.int64), np.zeros(1, np.bool_))
+        col_rel, shift, indexed = rim_columns
+        flags, row_n = kernels.jump_flags(mask, column, np.ascontiguousarray(col_rel, dtype=np.float32), region,
+                                          np.ascontiguousarray(shift, dtype=np.int64),
+                                          np.ascontiguousarray(indexed, dtype=np.bool_), int(pattern.stripe_px), k,
+                                          JUMP_FIT_ROWS, float(params.piece_jump_px), OK, RIM)
         if row_n.any():
             band, n_band = kernels.jump_band(mask, region, flags, row_n, JUMP_MIN_COLS, JUMP_REACH_PX, OK)
     if n_band:
@@ -1957,7 +1974,7 @@ def piece_check(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confid
         _unreported(counts, int(n_j), UNINDEXED)
         _unreported(counts, int(n_jb), RIM)
     if stats is not None:
-        stats["piece_jump_px"], stats["piece_jump_band_px"] = int(n_j), int(n_jb)
+        stats["jump_piece_px"], stats["jump_line_px"] = int(n_j), int(n_jb)
     return int(n_a), int(n_b)
 
 
@@ -2820,7 +2837,7 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
     n_sandwich = sandwich_guard(mask, column, stripe, conf, region, pattern, params, counts)
     jump = {}
     n_piece, n_alone = piece_check(mask, column, stripe, conf, cls.labels, region, pattern, params, counts, n_reg,
-                                   linked, jump)
+                                   linked, jump, (column_rel, reg_shift, reg_indexed))
     _unreported(counts, int(kernels.drop_orphans(mask, column, stripe, conf, OK, ISOLATED)), ISOLATED)
     sigma = None
     floor = None
@@ -2861,8 +2878,9 @@ def _decode(img: np.ndarray, pattern: PatternSpec, params: DecodeParams, keep_st
     stats["sandwich_px"] = int(n_sandwich)
     # pieces cut off from their region's body: by their own markers, for nothing continuing them
     stats["piece_px"], stats["piece_alone_px"] = int(n_piece), int(n_alone)
-    stats["piece_jump_px"] = jump.get("piece_jump_px", 0)
-    stats["piece_jump_band_px"] = jump.get("piece_jump_band_px", 0)
+    # pieces cut off along lines where the column jumps (and those lines' pixels beside them)
+    stats["jump_piece_px"] = jump.get("jump_piece_px", 0)
+    stats["jump_line_px"] = jump.get("jump_line_px", 0)
     stats["transitions_joined"] = int(joined.size)
     if ca is not None:
         stats["lateral_ca"] = dict(ca)

@@ -4014,6 +4014,14 @@ def _jump_reference(mask, column, region, k, L, tol):
     return out
 
 
+def _jump_flags(mask, col, region, k, L, tol, col_rel=None, shift=None, indexed=None):
+    from gbscan import kernels
+
+    if col_rel is None:
+        col_rel, shift, indexed = col, np.zeros(1, np.int64), np.zeros(1, bool)
+    return kernels.jump_flags(mask, col, col_rel, region, shift, indexed, 8, k, L, tol, OK, 8)
+
+
 def _blurred_rows(col, sigma):
     from scipy.ndimage import gaussian_filter1d
     return gaussian_filter1d(col, sigma, axis=0, mode="nearest").astype(np.float32)
@@ -4036,12 +4044,12 @@ def test_jump_flags_see_a_jump_along_the_stripes_not_a_crease_or_a_curve():
                       ("curve", base + 0.04 * (v - 30) ** 2),
                       ("tilt", base + 0.3 * v)):
         col = _blurred_rows(col, 2.0)
-        f = kernels.jump_flags(mask, col, region, 4, 4, 2.0, OK)[0]
+        f = _jump_flags(mask, col, region, 4, 4, 2.0)[0]
         assert not f.any(), name
         assert (f == _jump_reference(mask, col, region, 4, 4, 2.0)).all()
     for step, flagged in ((3.5, True), (1.5, False)):
         col = _blurred_rows(base + np.where(v < 30, 0.0, step) + 0.1 * v, 2.0)
-        f = kernels.jump_flags(mask, col, region, 4, 4, 2.0, OK)[0]
+        f = _jump_flags(mask, col, region, 4, 4, 2.0)[0]
         assert (f == _jump_reference(mask, col, region, 4, 4, 2.0)).all()
         if not flagged:
             assert not f.any()
@@ -4051,7 +4059,17 @@ def test_jump_flags_see_a_jump_along_the_stripes_not_a_crease_or_a_curve():
     # a side in another region, or a masked pixel among the fitted rows: not measured
     col = _blurred_rows(base + np.where(v < 30, 0.0, 3.5), 2.0)
     region2 = np.where(v < 30, 0, 1).astype(np.int32)
-    assert not kernels.jump_flags(mask, col, region2, 4, 4, 2.0, OK)[0].any()
+    assert not _jump_flags(mask, col, region2, 4, 4, 2.0)[0].any()
+    # the rows below the jump masked by the rim rules ("rim", 8): fitted from the region's own
+    # columns (relative + offset) when they are given, as the decoder gives them
+    masked = mask.copy()
+    masked[32:] = 8
+    col_m = np.where(masked == OK, col, np.nan).astype(np.float32)
+    col_rel = (col - 8.0 * 3).astype(np.float32)       # the region's offset: 3 stripes of 8 px
+    assert not _jump_flags(masked, col_m, region, 4, 4, 2.0)[0].any()
+    f = _jump_flags(masked, col_m, region, 4, 4, 2.0, col_rel, np.array([3]), np.array([True]))[0]
+    assert f[29, 1:-1].all() and not f[32:].any()
+    assert not _jump_flags(masked, col_m, region, 4, 4, 2.0, col_rel, np.array([3]), np.array([False]))[0].any()
 
 
 def test_jump_flags_match_a_plain_reference_on_random_maps():
@@ -4066,7 +4084,7 @@ def test_jump_flags_match_a_plain_reference_on_random_maps():
         mask = np.where(rng.random((H, W)) < 0.05, 8, OK).astype(np.uint8)
         region = np.where(rng.random((H, W)) < 0.03, 1, 0).astype(np.int32)
         for tol in (0.5, 2.0):
-            f, row_n = kernels.jump_flags(mask, col, region, 3, 4, tol, OK)
+            f, row_n = _jump_flags(mask, col, region, 3, 4, tol)
             assert (f == _jump_reference(mask, col, region, 3, 4, tol)).all(), trial
             assert (row_n == f.sum(axis=1)).all()
 
@@ -4126,4 +4144,4 @@ def test_a_wall_pocket_welded_under_a_panel_across_a_jump_is_masked():
     sm, sm0 = _rule_fixes_weld("840 mm, wall 1 151 mm", r, DecodeParams(piece_jump_px=0), 700, 0.012)
     _, bad0 = sim.column_errors(sm0.column, sm0.valid, r.proj_xy[..., 0], PatternSpec().stripe_px)
     lost = sm0.valid & ~sm.valid
-    assert (lost & ~bad0).sum() <= 120 and sm.stats["piece_jump_px"] >= 700
+    assert (lost & ~bad0).sum() <= 120 and sm.stats["jump_piece_px"] >= 700
