@@ -1970,7 +1970,7 @@ def piece_check(mask: np.ndarray, column: np.ndarray, stripe: np.ndarray, confid
             near = int(params.piece_jump_rows) + 1
             a, b = max(int(rows[0]) - near - 1, 0), int(rows[-1]) + near + 2
             n_j, n_jb = kernels.jump_pieces(mask[a:b], column[a:b], stripe[a:b], confidence[a:b], failed[a:b],
-                                            band[a:b], near, OK, UNINDEXED, RIM)
+                                            band[a:b], region[a:b], near, OK, UNINDEXED, RIM)
         _unreported(counts, int(n_j), UNINDEXED)
         _unreported(counts, int(n_jb), RIM)
     if stats is not None:

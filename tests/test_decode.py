@@ -4126,8 +4126,11 @@ def test_jump_pieces_keep_a_piece_between_two_lines():
     band[25, 10:16] = True
     band[31, 10:16] = True
     failed[26:31, 10:16] = True               # between two lines: kept
-    n_p, n_b = kernels.jump_pieces(mask, col, stripe, conf, failed, band, 5, OK, 6, 8)
-    assert (n_p, n_b) == (54, 6)
+    region = np.zeros((H, W), np.int32)
+    region[9, :] = 1                          # another region's line beside the piece: not its rows
+    band[9, 2:8] = True
+    n_p, n_b = kernels.jump_pieces(mask, col, stripe, conf, failed, band, region, 5, OK, 6, 8)
+    assert (n_p, n_b) == (54, 6) and (mask[9, 2:8] == OK).all()
     assert (mask[11:20, 2:8] == 6).all() and (mask[10, 2:8] == 8).all() and np.isnan(col[11, 2])
     assert (mask[25:32, 10:16] == OK).all() and stripe[26, 10] == 12
 

@@ -1856,13 +1856,14 @@ def jump_band(mask, region, flags, row_n, min_cols, reach_px, ok_code):
 
 
 @njit(cache=True, nogil=True)
-def jump_pieces(mask, column, stripe, conf, failed, band, near_rows, ok_code, code, band_code):
+def jump_pieces(mask, column, stripe, conf, failed, band, region, near_rows, ok_code, code, band_code):
     """Mask what the pieces cut along jump lines lost: ``failed`` (H, W) bool, reported pixels
     the piece tests masked with the cut (:func:`jump_band`'s ``band`` taken out) and not without
     it, joined along rows and columns into pieces.  A piece with a cut pixel right above one of
     its pixels and one right below another hangs between two jump lines inside its surface (a
     face's eyelid, its lips) and is kept; the others are masked ``code``, and the band pixels
-    within ``near_rows`` rows and 1 column of them ``band_code`` (the rows the blur mixed).  mask,
+    of their region (``region`` (H, W) int32) within ``near_rows`` rows and 1 column of them
+    ``band_code`` (the rows the blur mixed).  mask,
     column, stripe, conf: updated in place (NaN / -1 / 0 where masked).  Returns (piece pixels,
     band pixels) masked."""
     H, W = mask.shape
@@ -1924,9 +1925,10 @@ def jump_pieces(mask, column, stripe, conf, failed, band, near_rows, ok_code, co
             if not band[v, u] or mask[v, u] != uok:
                 continue
             hit = False
+            g = region[v, u]
             for p in range(max(v - near_rows, 0), min(v + near_rows + 1, H)):
                 for q in range(max(u - 1, 0), min(u + 2, W)):
-                    if drop[p, q]:
+                    if drop[p, q] and region[p, q] == g:
                         hit = True
             if hit:
                 mask[v, u] = band_code
