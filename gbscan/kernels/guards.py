@@ -1356,6 +1356,38 @@ def _find(parent, a):
 
 
 @njit(cache=True, nogil=True)
+def _join_runs(rr, r0, r1, rg, row_start, H):
+    # the pieces of :func:`_piece_runs`' runs: (n,) int64, each run's root, its piece's first run
+    # (unions keep the smaller index).  Runs of rows v - 1 and v of one region that share a column
+    # (4 neighbours) are one piece.  Pixels touching at a corner only are no evidence for each
+    # other (the continuity votes, like the unwrapping's links, are along rows and columns): a
+    # wall band below a sphere's slanted silhouette hung from it by one diagonal step at 725-755 mm
+    n = rr.shape[0]
+    parent = np.arange(n).astype(np.int64)
+    for v in range(1, H):
+        i = row_start[v - 1]
+        ie = row_start[v]
+        for j in range(row_start[v], row_start[v + 1]):
+            while i < ie and r1[i] < r0[j]:
+                i += 1
+            k = i
+            while k < ie and r0[k] <= r1[j]:
+                if rg[k] == rg[j]:
+                    a = _find(parent, k)
+                    b = _find(parent, j)
+                    if a != b:
+                        if a < b:
+                            parent[b] = a
+                        else:
+                            parent[a] = b
+                k += 1
+    root = np.empty(n, np.int64)
+    for j in range(n):
+        root[j] = _find(parent, j)
+    return root
+
+
+@njit(cache=True, nogil=True)
 def _piece_runs(mask, region, ok_code, n_regions):
     # the reported pixels' runs of one region along each row: (row, u0, u1, region) per run (row
     # order) and row_start (H + 1,) into them.  Per row a branch-free pass writes each pixel's key
@@ -1467,32 +1499,9 @@ def piece_check(mask, column, stripe, conf, labels, region, is_marker, n_regions
     uok = np.uint8(ok_code)
     rr, r0, r1, rg, row_start = _piece_runs(mask, region, uok, n_regions)
     n = rr.shape[0]
-    parent = np.arange(n).astype(np.int64)
-    for v in range(1, H):
-        # runs of rows v - 1 and v of one region that share a column (4 neighbours): one piece.
-        # Pixels touching at a corner only are no evidence for each other (the continuity votes,
-        # like the unwrapping's links, are along rows and columns): a wall band below a sphere's
-        # slanted silhouette hung from it by one diagonal step at 725-755 mm
-        i = row_start[v - 1]
-        ie = row_start[v]
-        for j in range(row_start[v], row_start[v + 1]):
-            while i < ie and r1[i] < r0[j]:
-                i += 1
-            k = i
-            while k < ie and r0[k] <= r1[j]:
-                if rg[k] == rg[j]:
-                    a = _find(parent, k)
-                    b = _find(parent, j)
-                    if a != b:
-                        if a < b:
-                            parent[b] = a
-                        else:
-                            parent[a] = b
-                k += 1
+    root = _join_runs(rr, r0, r1, rg, row_start, H)
     size = np.zeros(n, np.int64)
-    root = np.empty(n, np.int64)
     for j in range(n):
-        root[j] = _find(parent, j)
         size[root[j]] += r1[j] - r0[j] + 1
     # a root is its piece's first run (unions keep the smaller index): the body of each region
     # is its largest piece, the first in row order among equals
@@ -1859,81 +1868,59 @@ def jump_band(mask, region, flags, row_n, min_cols, reach_px, ok_code):
 def jump_pieces(mask, column, stripe, conf, failed, band, region, near_rows, ok_code, code, band_code):
     """Mask what the pieces cut along jump lines lost: ``failed`` (H, W) bool, reported pixels
     the piece tests masked with the cut (:func:`jump_band`'s ``band`` taken out) and not without
-    it, joined along rows and columns into pieces.  A piece with a cut pixel right above one of
-    its pixels and one right below another hangs between two jump lines inside its surface (a
-    face's eyelid, its lips) and is kept; the others are masked ``code``, and the band pixels
-    of their region (``region`` (H, W) int32) within ``near_rows`` rows and 1 column of them
-    ``band_code`` (the rows the blur mixed).  mask,
-    column, stripe, conf: updated in place (NaN / -1 / 0 where masked).  Returns (piece pixels,
-    band pixels) masked."""
+    it, joined into pieces as the piece tests join them (:func:`_piece_runs`, :func:`_join_runs`:
+    one region's, along rows and columns; ``region`` (H, W) int32).  A piece with a cut pixel
+    right above one of its pixels and one right below another hangs between two jump lines
+    inside its surface (a face's eyelid, its lips) and is kept; the others are masked ``code``,
+    and the band pixels of their region within ``near_rows`` rows and 1 column of them
+    ``band_code`` (the rows the blur mixed).  mask, column, stripe, conf: updated in place
+    (:func:`_unreport_row`).  Returns (piece pixels, band pixels) masked."""
     H, W = mask.shape
-    n = 0
+    n_reg = 0
     for v in range(H):
         for u in range(W):
-            n += failed[v, u]
-    if n == 0:
+            if failed[v, u]:
+                n_reg = max(n_reg, region[v, u] + 1)
+    if n_reg == 0:
         return 0, 0
-    lab = np.full((H, W), -1, np.int32)
-    parent = np.empty(n, np.int64)
-    n = 0
-    for v in range(H):
-        for u in range(W):
-            if not failed[v, u]:
-                continue
-            parent[n] = n
-            lab[v, u] = np.int32(n)
-            if u > 0 and lab[v, u - 1] >= 0:
-                a = _find(parent, lab[v, u - 1])
-                b = _find(parent, n)
-                parent[max(a, b)] = min(a, b)
-            if v > 0 and lab[v - 1, u] >= 0:
-                a = _find(parent, lab[v - 1, u])
-                b = _find(parent, n)
-                parent[max(a, b)] = min(a, b)
-            n += 1
+    # what the cut lost as pieces: runs of one region joined along rows and columns, as the
+    # piece tests join them
+    rr, r0, r1, rg, row_start = _piece_runs(failed.view(np.uint8), region, 1, n_reg)
+    n = rr.shape[0]
+    root = _join_runs(rr, r0, r1, rg, row_start, H)
     up = np.zeros(n, np.bool_)
     down = np.zeros(n, np.bool_)
-    for v in range(H):
-        for u in range(W):
-            if lab[v, u] < 0:
-                continue
-            r = _find(parent, lab[v, u])
-            lab[v, u] = np.int32(r)
-            if v > 0 and band[v - 1, u]:
-                up[r] = True
-            if v < H - 1 and band[v + 1, u]:
-                down[r] = True
+    for j in range(n):
+        v = rr[j]
+        t = root[j]
+        for u in range(r0[j], r1[j] + 1):
+            up[t] |= v > 0 and band[v - 1, u]
+            down[t] |= v < H - 1 and band[v + 1, u]
     uok = np.uint8(ok_code)
     drop = np.zeros((H, W), np.bool_)
+    for j in range(n):
+        t = root[j]
+        if up[t] and down[t]:
+            continue
+        v = rr[j]
+        for u in range(r0[j], r1[j] + 1):
+            drop[v, u] = mask[v, u] == uok
     n_piece = 0
     for v in range(H):
-        for u in range(W):
-            r = lab[v, u]
-            if r < 0 or (up[r] and down[r]) or mask[v, u] != uok:
-                continue
-            drop[v, u] = True
-            mask[v, u] = code
-            column[v, u] = np.nan
-            stripe[v, u] = -1
-            conf[v, u] = 0.0
-            n_piece += 1
-    n_band = 0
+        n_piece += _unreport_row(drop[v], mask[v], column[v], stripe[v], conf[v], np.uint8(code))
     if n_piece == 0:
         return 0, 0
+    n_band = 0
+    hit = np.zeros(W, np.bool_)
     for v in range(H):
         for u in range(W):
+            hit[u] = False
             if not band[v, u] or mask[v, u] != uok:
                 continue
-            hit = False
             g = region[v, u]
             for p in range(max(v - near_rows, 0), min(v + near_rows + 1, H)):
                 for q in range(max(u - 1, 0), min(u + 2, W)):
                     if drop[p, q] and region[p, q] == g:
-                        hit = True
-            if hit:
-                mask[v, u] = band_code
-                column[v, u] = np.nan
-                stripe[v, u] = -1
-                conf[v, u] = 0.0
-                n_band += 1
+                        hit[u] = True
+        n_band += _unreport_row(hit, mask[v], column[v], stripe[v], conf[v], np.uint8(band_code))
     return n_piece, n_band
