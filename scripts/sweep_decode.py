@@ -49,6 +49,7 @@ depth edges when there are any).
     python scripts/sweep_decode.py --cache DIR --set holdout10    # 32 frames more (thirty-fourth session)
     python scripts/sweep_decode.py --cache DIR --set holdout11    # 32 frames more (thirty-fourth session)
     python scripts/sweep_decode.py --cache DIR --set holdout12    # 32 frames more (thirty-fifth session)
+    python scripts/sweep_decode.py --cache DIR --set holdout13    # 32 frames more (thirty-fifth session)
     python scripts/sweep_decode.py --cache DIR --set faces        # heads and real faces at 575-805 mm, turned (32)
 
 Prints one line per scene (reported % of lit non-edge pixels, wrong pixels), the regions with
@@ -71,14 +72,14 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 
 #: the frame sets of ``--set``: the sweep's 48 scenes, the same objects under room light, the clean
 #: preset, other baselines, the rig mirrored, the multi-object scene's panel plain, other layouts of
-#: it, twelve sets of frames of it kept out of the rules' making (the first two each spent by a
+#: it, thirteen sets of frames of it kept out of the rules' making (the first two each spent by a
 #: rule of the thirtieth session, the third to fifth by the thirty-first session's piece rules, the
 #: sixth by the thirty-second session's strong-stripe threshold, the eighth by the thirty-third
 #: session's ``DecodeParams.piece_linked``, the tenth by the thirty-fourth's jump cut; the eleventh
-#: made in the thirty-fourth, the twelfth in the thirty-fifth) and a set of faces
+#: made in the thirty-fourth, the twelfth and thirteenth in the thirty-fifth) and a set of faces
 #: kept out too
 SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels", "layouts", "holdout", "holdout2",
-        "holdout3", "holdout4", "holdout5", "holdout6", "holdout7", "holdout8", "holdout9", "holdout10", "holdout11", "holdout12", "faces")
+        "holdout3", "holdout4", "holdout5", "holdout6", "holdout7", "holdout8", "holdout9", "holdout10", "holdout11", "holdout12", "holdout13", "faces")
 
 
 def scene_list(quick: bool = False, which: str = "main") -> list[tuple[str, str, int, int, object]]:
@@ -285,6 +286,9 @@ HELD_OUT = {
     "holdout11": ((595.0, 685.0, 795.0, 870.0), (1.39, 1.53), 0.45, (26, 27), 0.6),
     # thirty-fifth session, made at its start, before holdout11's wrong pixels were looked into
     "holdout12": ((610.0, 705.0, 750.0, 885.0), (1.31, 1.57), 0.5, (28, 29), 0.55),
+    # thirty-fifth session, made after ``UnwrapParams.link_hang_rows`` 3 (from holdout11) was run on
+    # holdout12 and before holdout12's wrong pixels were looked into
+    "holdout13": ((630.0, 720.0, 810.0, 895.0), (1.42, 1.59), 0.6, (30, 31), 0.5),
 }
 
 
@@ -606,7 +610,7 @@ def main(argv=None) -> int:
                          "session; one rule was made from holdout4 and one from holdout5), holdout7 (32 more, "
                          "thirty-second session), holdout8, holdout9 (32 more each, thirty-third session; one rule was "
                          "made from holdout8), holdout10, holdout11 (32 more each, thirty-fourth session; one rule was made from holdout10), "
-                         "holdout12 (32 more, thirty-fifth session), faces (held out too: the synthetic head at 575-785 mm turned "
+                         "holdout12, holdout13 (32 more each, thirty-fifth session), faces (held out too: the synthetic head at 575-785 mm turned "
                          "up to 35 degrees and the real face at 585-805 mm, some before a wall; 32 frames with the "
                          "real face's mesh, 20 without)")
     ap.add_argument("--edges", action="store_true", help="also list regions wrong only on depth-edge pixels")

@@ -3536,7 +3536,7 @@ def test_sweep_script_frame_sets(tmp_path, capsys):
     spec.loader.exec_module(mod)
     fran = 1 if sim.scenes.FRAN_PATH.is_file() else 0
     assert [len(mod.scene_list(False, w)) for w in mod.SETS] == [44 + 4 * fran, 44, 14 + 2 * fran, 33, 21, 45, 32, 32,
-                                                                 32, 32, 32, 32, 32, 32, 32, 32, 32, 32, 32, 20 + 12 * fran]
+                                                                 32, 32, 32, 32, 32, 32, 32, 32, 32, 32, 32, 32, 20 + 12 * fran]
     # the held-out faces: heads and real faces at distances and turns no other set's faces use
     faces = mod.scene_list(False, "faces")
     assert len({n for n, *_ in faces}) == len(faces) and all(n.startswith("faces_") for n, *_ in faces)
