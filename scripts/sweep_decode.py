@@ -75,9 +75,9 @@ if str(ROOT) not in sys.path:  # measure this checkout, whatever the environment
 #: it, thirteen sets of frames of it kept out of the rules' making (the first two each spent by a
 #: rule of the thirtieth session, the third to fifth by the thirty-first session's piece rules, the
 #: sixth by the thirty-second session's strong-stripe threshold, the eighth by the thirty-third
-#: session's ``DecodeParams.piece_linked``, the tenth by the thirty-fourth's jump cut; the eleventh
-#: made in the thirty-fourth, the twelfth and thirteenth in the thirty-fifth) and a set of faces
-#: kept out too
+#: session's ``DecodeParams.piece_linked``, the tenth by the thirty-fourth's jump cut, the eleventh
+#: and twelfth looked into in the thirty-fifth with no rule kept; the thirteenth made then, the
+#: freshest) and a set of faces kept out too
 SETS = ("main", "room-light", "clean", "baselines", "mirrored", "panels", "layouts", "holdout", "holdout2",
         "holdout3", "holdout4", "holdout5", "holdout6", "holdout7", "holdout8", "holdout9", "holdout10", "holdout11", "holdout12", "holdout13", "faces")
 
@@ -282,12 +282,14 @@ HELD_OUT = {
     "holdout9": ((625.0, 690.0, 780.0, 865.0), (1.34, 1.5), 0.5, (18, 19), 0.6),
     # thirty-fourth session, made at its start, before holdout9's wrong pixels were looked into
     "holdout10": ((580.0, 670.0, 775.0, 840.0), (1.37, 1.44), 0.55, (24, 25), 0.5),
-    # thirty-fourth session, made before any rule made from holdout10 was run on it
+    # thirty-fourth session, made before any rule made from holdout10 was run on it; looked into in
+    # the thirty-fifth (its 595 mm strip), the rules made from it not kept
     "holdout11": ((595.0, 685.0, 795.0, 870.0), (1.39, 1.53), 0.45, (26, 27), 0.6),
-    # thirty-fifth session, made at its start, before holdout11's wrong pixels were looked into
+    # thirty-fifth session, made at its start, before holdout11's wrong pixels were looked into;
+    # looked into the same session (its 705 and 750 mm cases), no rule made
     "holdout12": ((610.0, 705.0, 750.0, 885.0), (1.31, 1.57), 0.5, (28, 29), 0.55),
-    # thirty-fifth session, made after ``UnwrapParams.link_hang_rows`` 3 (from holdout11) was run on
-    # holdout12 and before holdout12's wrong pixels were looked into
+    # thirty-fifth session, made after ``UnwrapParams.link_hang_rows`` 3 (from holdout11; not kept)
+    # was run on holdout12 and before holdout12's wrong pixels were looked into
     "holdout13": ((630.0, 720.0, 810.0, 895.0), (1.42, 1.59), 0.6, (30, 31), 0.5),
 }
 
@@ -610,7 +612,8 @@ def main(argv=None) -> int:
                          "session; one rule was made from holdout4 and one from holdout5), holdout7 (32 more, "
                          "thirty-second session), holdout8, holdout9 (32 more each, thirty-third session; one rule was "
                          "made from holdout8), holdout10, holdout11 (32 more each, thirty-fourth session; one rule was made from holdout10), "
-                         "holdout12, holdout13 (32 more each, thirty-fifth session), faces (held out too: the synthetic head at 575-785 mm turned "
+                         "holdout12, holdout13 (32 more each, thirty-fifth session; holdout11 and holdout12 were looked into "
+                         "then, no rule kept), faces (held out too: the synthetic head at 575-785 mm turned "
                          "up to 35 degrees and the real face at 585-805 mm, some before a wall; 32 frames with the "
                          "real face's mesh, 20 without)")
     ap.add_argument("--edges", action="store_true", help="also list regions wrong only on depth-edge pixels")
